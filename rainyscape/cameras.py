@@ -1,0 +1,164 @@
+"""Pinhole cameras in the OpenCV convention, image windows, and ray generation.
+
+Convention (used everywhere inside the package):
+- camera-to-world 4x4 ``c2w``; camera axes x right, y down, z forward (OpenCV / COLMAP);
+- intrinsics fx, fy, cx, cy in pixels; continuous pixel coordinates put the centre of
+  pixel (row i, column j) at (j + 0.5, i + 0.5), as COLMAP and gsplat do;
+- every image of a scene has the same width and height.
+Dataparsers convert other conventions (OpenGL / Maya / LLFF / nerfstudio) at the boundary.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+# OpenGL-style camera (x right, y up, looking down -z) <-> OpenCV: flip the y and z axes.
+GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))
+
+
+def opengl_to_opencv(c2w: Tensor) -> Tensor:
+    """Camera-to-world with OpenGL camera axes -> OpenCV camera axes (an involution)."""
+    return c2w @ GL_TO_CV.to(c2w)
+
+
+@dataclass
+class Cameras:
+    c2w: Tensor  # (N, 4, 4) float32
+    fx: Tensor  # (N,)
+    fy: Tensor
+    cx: Tensor
+    cy: Tensor
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        if self.c2w.ndim != 3 or self.c2w.shape[-2:] != (4, 4):
+            raise ValueError(f"c2w must be (N, 4, 4), got {tuple(self.c2w.shape)}")
+
+    def __len__(self) -> int:
+        return self.c2w.shape[0]
+
+    def __getitem__(self, idx) -> "Cameras":
+        if isinstance(idx, int):
+            idx = [idx]
+        if isinstance(idx, Tensor):
+            idx = idx.to(self.c2w.device)
+        return Cameras(self.c2w[idx], self.fx[idx], self.fy[idx], self.cx[idx], self.cy[idx],
+                       self.width, self.height)
+
+    def to(self, device) -> "Cameras":
+        return Cameras(self.c2w.to(device), self.fx.to(device), self.fy.to(device),
+                       self.cx.to(device), self.cy.to(device), self.width, self.height)
+
+    @property
+    def device(self) -> torch.device:
+        return self.c2w.device
+
+    @property
+    def centers(self) -> Tensor:
+        return self.c2w[:, :3, 3]
+
+    def w2c(self) -> Tensor:
+        """World-to-camera 4x4 (rigid inverse)."""
+        rot = self.c2w[:, :3, :3]
+        t = self.c2w[:, :3, 3:]
+        out = torch.zeros_like(self.c2w)
+        out[:, :3, :3] = rot.transpose(1, 2)
+        out[:, :3, 3:] = -rot.transpose(1, 2) @ t
+        out[:, 3, 3] = 1.0
+        return out
+
+    def K(self) -> Tensor:
+        """Intrinsic matrices (N, 3, 3)."""
+        k = torch.zeros(len(self), 3, 3, dtype=self.fx.dtype, device=self.fx.device)
+        k[:, 0, 0], k[:, 1, 1] = self.fx, self.fy
+        k[:, 0, 2], k[:, 1, 2] = self.cx, self.cy
+        k[:, 2, 2] = 1.0
+        return k
+
+    def scaled(self, factor: float) -> "Cameras":
+        """Cameras for images resized by ``factor`` (0.5 halves width and height)."""
+        w, h = int(round(self.width * factor)), int(round(self.height * factor))
+        sx, sy = w / self.width, h / self.height
+        return Cameras(self.c2w.clone(), self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, w, h)
+
+    def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Project world points (P, 3) into every camera: pixels (N, P, 2) and depths (N, P)."""
+        w2c = self.w2c()
+        cam = points[None] @ w2c[:, :3, :3].transpose(1, 2) + w2c[:, None, :3, 3]
+        z = cam[..., 2]
+        u = self.fx[:, None] * cam[..., 0] / z + self.cx[:, None]
+        v = self.fy[:, None] * cam[..., 1] / z + self.cy[:, None]
+        return torch.stack([u, v], -1), z
+
+
+@dataclass
+class Window:
+    """A rectangle of pixels per view: view b covers rows y0[b]:y0[b]+height, cols x0[b]:x0[b]+width."""
+
+    x0: Tensor  # (B,) long
+    y0: Tensor  # (B,) long
+    width: int
+    height: int
+
+    @staticmethod
+    def full(cameras: Cameras) -> "Window":
+        zeros = torch.zeros(len(cameras), dtype=torch.long)
+        return Window(zeros, zeros.clone(), cameras.width, cameras.height)
+
+    def __len__(self) -> int:
+        return self.x0.shape[0]
+
+    def __getitem__(self, idx) -> "Window":
+        if isinstance(idx, int):
+            idx = [idx]
+        return Window(self.x0[idx], self.y0[idx], self.width, self.height)
+
+    def pixel_grid(self, device=None) -> tuple[Tensor, Tensor]:
+        """Integer pixel coordinates (B, h, w) of every pixel in the window: xs, ys."""
+        dev = device or self.x0.device
+        jj = torch.arange(self.width, device=dev)
+        ii = torch.arange(self.height, device=dev)
+        ys = self.y0.to(dev)[:, None, None] + ii[None, :, None]
+        xs = self.x0.to(dev)[:, None, None] + jj[None, None, :]
+        return xs.expand(-1, self.height, -1), ys.expand(-1, -1, self.width)
+
+    def crop(self, images: Tensor) -> Tensor:
+        """Cut the window out of per-view images (B, C, H, W) -> (B, C, h, w)."""
+        rows = []
+        for b in range(len(self)):  # B is a handful of patches, not pixels
+            x, y = int(self.x0[b]), int(self.y0[b])
+            rows.append(images[b, :, y:y + self.height, x:x + self.width])
+        return torch.stack(rows)
+
+
+@dataclass
+class Rays:
+    origins: Tensor  # (..., 3)
+    directions: Tensor  # (..., 3), unit length
+    z_scale: Tensor  # (...,) cos of the angle to the optical axis: z-depth = t * z_scale
+
+
+def pixel_rays(cameras: Cameras, xs: Tensor, ys: Tensor) -> Rays:
+    """Rays through pixel centres. ``xs``, ``ys``: integer pixel indices (B, ...) for camera b."""
+    shape = xs.shape
+    b = shape[0]
+    xs = xs.reshape(b, -1).to(cameras.c2w.dtype) + 0.5
+    ys = ys.reshape(b, -1).to(cameras.c2w.dtype) + 0.5
+    dirs_cam = torch.stack(
+        [(xs - cameras.cx[:, None]) / cameras.fx[:, None],
+         (ys - cameras.cy[:, None]) / cameras.fy[:, None],
+         torch.ones_like(xs)], -1)  # (B, P, 3), z = 1
+    norm = dirs_cam.norm(dim=-1, keepdim=True)
+    dirs = (dirs_cam / norm) @ cameras.c2w[:, :3, :3].transpose(1, 2)
+    origins = cameras.c2w[:, None, :3, 3].expand_as(dirs)
+    return Rays(origins.reshape(*shape, 3), dirs.reshape(*shape, 3), (1.0 / norm[..., 0]).reshape(shape))
+
+
+def window_rays(cameras: Cameras, window: Window) -> Rays:
+    """Rays of every pixel of the window, shaped (B, h, w, 3)."""
+    xs, ys = window.pixel_grid(cameras.device)
+    return pixel_rays(cameras, xs, ys)

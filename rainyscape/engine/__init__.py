@@ -1,0 +1,1 @@
+"""Training engine: phases, optimisers, callbacks, checkpoints. Knows no NeRF, Gaussian or rain."""

@@ -1,0 +1,1 @@
+"""The rain module: rain head, Langevin latent updates, rain-angle estimation."""
