@@ -1,0 +1,1 @@
+"""dataparsers components."""
