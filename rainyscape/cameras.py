@@ -128,11 +128,9 @@ class Window:
 
     def crop(self, images: Tensor) -> Tensor:
         """Cut the window out of per-view images (B, C, H, W) -> (B, C, h, w)."""
-        rows = []
-        for b in range(len(self)):  # B is a handful of patches, not pixels
-            x, y = int(self.x0[b]), int(self.y0[b])
-            rows.append(images[b, :, y:y + self.height, x:x + self.width])
-        return torch.stack(rows)
+        xs, ys = self.pixel_grid(images.device)
+        batch = torch.arange(len(self), device=images.device)[:, None, None]
+        return images.permute(0, 2, 3, 1)[batch, ys, xs].permute(0, 3, 1, 2)
 
 
 @dataclass

@@ -27,8 +27,6 @@ def sample_windows(pool: Tensor, count: int, size: int, width: int, height: int,
 
 def gather_pixels(images: Tensor, view_ids: Tensor, window: Window) -> Tensor:
     """Cut windows out of uint8 images (N, H, W, 3) -> float (B, 3, h, w) in [0, 1]."""
-    patches = []
-    for b in range(len(view_ids)):  # one slice per patch, never per pixel
-        x, y = int(window.x0[b]), int(window.y0[b])
-        patches.append(images[int(view_ids[b]), y:y + window.height, x:x + window.width])
-    return torch.stack(patches).permute(0, 3, 1, 2).float() / 255.0
+    xs, ys = window.pixel_grid(images.device)
+    picked = images[view_ids.to(images.device)[:, None, None], ys, xs]  # (B, h, w, 3)
+    return picked.permute(0, 3, 1, 2).float() / 255.0
