@@ -1,0 +1,110 @@
+"""Config: dotted overrides, types, clear errors with exit codes, YAML round trip."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from _plugins import install_toy_plugin
+from rainyscape import config, registry
+from rainyscape.errors import ConfigError
+
+
+@pytest.fixture(autouse=True)
+def toy_plugin(tmp_path_factory, monkeypatch):
+    path = install_toy_plugin(tmp_path_factory.mktemp("plugin"))
+    monkeypatch.syspath_prepend(str(path))
+    monkeypatch.delenv("RAINYSCAPE_PLUGINS", raising=False)
+    registry.clear_cache()
+    yield path
+    registry.clear_cache()
+
+
+def test_nested_overrides_are_typed():
+    cfg = config.method_config("toy", [
+        "field.hidden=8", "field.lr=5e-3", "trainer.max_iters=7", "trainer.progress=false",
+        "losses.mean-abs.weight=0.5", "losses.mean-abs.phases=warmup,joint", "trainer.device=cpu"])
+    assert cfg.field.options.hidden == 8 and isinstance(cfg.field.options.hidden, int)
+    assert cfg.field.options.lr == pytest.approx(5e-3)
+    assert cfg.trainer.max_iters == 7 and cfg.trainer.progress is False
+    assert cfg.losses["mean-abs"].weight == 0.5
+    assert cfg.losses["mean-abs"].phases == ("warmup", "joint")
+
+
+def test_method_defaults_are_applied_and_swap_resets_options():
+    cfg = config.method_config("toy")
+    assert cfg.field.options.hidden == 16  # the method's own default
+    swapped = config.method_config("toy", ["field=direction"])
+    assert swapped.field.options.hidden == 32  # the component's default
+    both = config.method_config("toy", ["field.hidden=4", "field=direction"])  # swap first, then set
+    assert both.field.options.hidden == 4
+
+
+def test_loss_terms_can_be_dropped_and_added():
+    cfg = config.method_config("toy", ["losses.mean-abs=none"])
+    assert cfg.losses == {}
+    cfg = config.method_config("toy", ["losses.mean-abs=none", "losses.mean-abs.weight=2"])
+    assert cfg.losses["mean-abs"].weight == 2.0
+    assert cfg.losses["mean-abs"].phases == ("warmup", "joint")  # the loss class's defaults
+
+
+@pytest.mark.parametrize("override, message", [
+    ("field.hiden=3", "unknown key 'field.hiden'. Did you mean 'hidden'?"),
+    ("trainer.max_iter=3", "Did you mean 'max_iters'?"),
+    ("trainer.max_iters=abc", "trainer.max_iters: cannot read 'abc' as int"),
+    ("trainer.max_iters=2.5", "cannot read '2.5' as int"),
+    ("trainer.progress=maybe", "cannot read 'maybe' as bool"),
+    ("losses.mean-abs.phases=warmup,later", "unknown phase 'later'"),
+    ("losses.mean-abs.detach=both", "is not one of"),
+    ("fiel.hidden=3", "Did you mean 'field'?"),
+    ("field=directon", "unknown field 'directon'. Did you mean 'direction'?"),
+    ("novalue", "expected key=value"),
+])
+def test_bad_overrides_give_clear_errors(override, message):
+    with pytest.raises(ConfigError) as err:
+        config.method_config("toy", [override])
+    assert message in str(err.value)
+
+
+def test_yaml_round_trip_is_equal(tmp_path):
+    cfg = config.method_config("toy", ["field.hidden=12", "trainer.seed=3", "data=/some/where"])
+    path = tmp_path / "config.yml"
+    config.save_yaml(cfg, path)
+    text = path.read_text()
+    assert "!!python" not in text and "rainyscape_version" in text  # plain data only
+    assert config.load_yaml(path) == cfg
+
+
+def test_yaml_with_unknown_key_is_rejected(tmp_path):
+    cfg = config.method_config("toy")
+    data = config.to_dict(cfg)
+    data["field"]["bogus"] = 1
+    with pytest.raises(ConfigError, match="unknown key 'field.bogus'"):
+        config.from_dict(data)
+
+
+def test_method_help_prints_full_tree(toy_plugin):
+    env = dict(os.environ, PYTHONPATH=str(toy_plugin))
+    out = subprocess.run(["rs-train", "method=toy", "--help"], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    assert "field.hidden = 16" in out.stdout and "trainer.max_iters = 20" in out.stdout
+    assert "losses.mean-abs.weight = 1.0" in out.stdout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["method=toy", "trainer.max_iters=abc"], "cannot read 'abc' as int"),
+    (["method=toy", "data=/no/such/folder"], "no such scene folder"),
+    (["method=nosuch"], "unknown method 'nosuch'"),
+    (["trainer.max_iters=3"], "which method?"),
+    (["method=toy", "--frobnicate"], "unknown option --frobnicate"),
+])
+def test_cli_errors_exit_non_zero_before_work(toy_plugin, tmp_path, args, message):
+    env = dict(os.environ, PYTHONPATH=str(toy_plugin))
+    out = subprocess.run(["rs-train", *args, f"trainer.output_dir={tmp_path}/outputs"],
+                         capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert out.returncode == 2
+    assert message in out.stderr and "Traceback" not in out.stderr
+    assert not (tmp_path / "outputs").exists() or not any((tmp_path / "outputs").rglob("config.yml"))
