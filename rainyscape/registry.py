@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from importlib import metadata
 
-from rainyscape.errors import PluginError
+from rainyscape.errors import ConfigError, PluginError
 
 KINDS: dict[str, str] = {
     "method": "rainyscape.methods",
@@ -39,7 +39,7 @@ class Entry:
     origin: str  # distribution name and version, or the env var
 
 
-class UnknownComponent(PluginError):
+class UnknownComponent(PluginError, ConfigError):
     def __init__(self, kind: str, name: str, known: list[str]):
         close = difflib.get_close_matches(name, known, n=1)
         hint = f" Did you mean '{close[0]}'?" if close else ""
