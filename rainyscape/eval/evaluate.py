@@ -1,25 +1,54 @@
 """The evaluation protocol (DESIGN.md): rainy-input floor, de-raining on training views
-(with and without post-processing) and novel held-out views."""
+(with and without post-processing) and novel held-out views; PSNR, SSIM, LPIPS (when its
+weights are on this machine), the predicted rain angle and, for simulated scenes, how well
+the predicted rain layer correlates with the true one.
+
+``metrics.json`` keys (``summary``; every value a mean over views):
+  rainy_input_{psnr,ssim,lpips}   rainy training inputs vs clean: the floor to beat
+  train_{psnr,ssim,lpips}         renders at training views vs clean (the paper's numbers)
+  train_<pp>_{psnr,ssim,lpips}    the same after post-process <pp> (the config's key)
+  heldout_{psnr,ssim,lpips}       renders at held-out views vs clean (novel views)
+  {train,heldout}_psnr_vs_rainy   renders vs the rainy images (how much rain was fitted)
+  rain_angle_deg, rain_angle_true_deg, rain_angle_error_deg, rain_correlation
+"""
 
 from __future__ import annotations
 
 import json
+import math
+import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from rainyscape.cameras import Window
+from rainyscape.cameras import Cameras, Window
+from rainyscape.components import RenderOutput
 from rainyscape.engine.pipeline import Pipeline
-from rainyscape.eval.metrics import psnr
+from rainyscape.eval.metrics import psnr, ssim
+from rainyscape.eval.perceptual import LpipsMetric, load_lpips
+
+STRIP_VIEWS = 3  # training views whose comparison strips evaluation saves for the report
+ANGLE_KEYS = ("rain_angle_deg", "residual_angle_deg", "rain_angle_true_deg")
+RAIN_KEYS = (*ANGLE_KEYS, "rain_correlation")  # training views only, kept without a split prefix
 
 
 @torch.no_grad()
+def render_cameras(pipeline: Pipeline, cameras: Cameras) -> RenderOutput:
+    """Full-resolution render of one camera (fields chunk rays, so memory stays bounded)."""
+    pipeline.field.eval()
+    cams = cameras.to(pipeline.device)
+    return pipeline.field.render(cams, Window.full(cams))
+
+
+def render_view(pipeline: Pipeline, index: int) -> RenderOutput:
+    return render_cameras(pipeline, pipeline.scene.cameras[[index]])
+
+
 def render_image(pipeline: Pipeline, index: int) -> Tensor:
     """Full-resolution render (3, H, W) of view ``index``."""
-    pipeline.field.eval()
-    cams = pipeline.scene.cameras.to(pipeline.device)[[index]]
-    return pipeline.field.render(cams, Window.full(cams)).rgb[0].clamp(0, 1)
+    return render_view(pipeline, index).rgb[0].clamp(0, 1)
 
 
 @torch.no_grad()
@@ -38,49 +67,206 @@ def predict_rain(pipeline: Pipeline, index: int, tile: int = 128) -> Tensor:
     return out
 
 
-def _image(u8: Tensor, device) -> Tensor:
+def to_float(u8: Tensor, device) -> Tensor:
+    """uint8 (H, W, 3) -> float (3, H, W) in [0, 1]."""
     return u8.to(device).permute(2, 0, 1).float() / 255.0
 
 
-def _mean(values: list[float]) -> float | None:
+@dataclass
+class ViewImages:
+    """Everything evaluation and renders need for one view, (3, H, W) floats."""
+
+    index: int
+    name: str
+    split: str  # "train" | "heldout"
+    rainy: Tensor
+    rendered: Tensor
+    depth: Tensor | None  # (1, H, W)
+    clean: Tensor | None = None
+    rain: Tensor | None = None  # predicted rain layer (training views with a rain head)
+    true_rain: Tensor | None = None
+    post: dict[str, Tensor] = field(default_factory=dict)  # post-processed renders by key
+
+
+@torch.no_grad()
+def view_images(pipeline: Pipeline, index: int) -> ViewImages:
+    scene, dev = pipeline.scene, pipeline.device
+    split = "train" if index in set(scene.train_indices) else "heldout"
+    out = render_view(pipeline, index)
+    v = ViewImages(index, scene.image_names[index], split, to_float(scene.images[index], dev),
+                   out.rgb[0].clamp(0, 1), None if out.depth is None else out.depth[0])
+    if scene.clean_images is not None:
+        v.clean = to_float(scene.clean_images[index], dev)
+    if scene.rain_layers is not None:
+        v.true_rain = scene.rain_layers[index].to(dev).permute(2, 0, 1).float()
+    if split == "train" and pipeline.rain_head is not None:
+        v.rain = predict_rain(pipeline, index)
+        for key, post in pipeline.postprocess.items():
+            v.post[key] = post(v.rendered, v.rain, v.rainy).clamp(0, 1)
+    return v
+
+
+# ------------------------------------------------------------------------ rain angles
+
+
+def _agr_options(pipeline: Pipeline) -> dict:
+    """Histogram settings of the run's AGR term, so evaluation measures angles as training did."""
+    for cfg, _ in pipeline.losses.values():
+        if cfg.name == "agr":
+            opts = vars(cfg.options) if not isinstance(cfg.options, dict) else cfg.options
+            return {k: opts[k] for k in ("bins", "threshold") if k in opts}
+    return {}
+
+
+def streak_angle_deg(image: Tensor, options: dict) -> float | None:
+    """Direction the dominant streaks run along, degrees in [0, 180) from the image +x axis
+    towards +y (down), estimated as the AGR loss does; None if the image has no edges."""
+    from rainyscape.rain.angles import estimate_rain_angles, streak_angle
+
+    theta, valid = estimate_rain_angles(image[None], k=1, **options)
+    if not bool(valid[0, 0]):
+        return None
+    return math.degrees(float(streak_angle(theta[0, 0])))
+
+
+def angle_difference_deg(a: float, b: float) -> float:
+    """Smallest difference of two undirected angles (period 180 degrees)."""
+    d = abs(a - b) % 180.0
+    return min(d, 180.0 - d)
+
+
+def mean_angle_deg(angles: list[float]) -> float | None:
+    """Circular mean of undirected angles (period 180): average the doubled angles."""
+    if not angles:
+        return None
+    s = sum(math.sin(math.radians(2 * a)) for a in angles)
+    c = sum(math.cos(math.radians(2 * a)) for a in angles)
+    return math.degrees(math.atan2(s, c)) / 2 % 180.0
+
+
+def correlation(a: Tensor, b: Tensor) -> float | None:
+    """Pearson correlation of two images' grey levels (None when either is constant)."""
+    x, y = a.double().mean(0).flatten(), b.double().mean(0).flatten()
+    x, y = x - x.mean(), y - y.mean()
+    den = float(x.norm() * y.norm())
+    return float((x * y).sum()) / den if den > 0 else None
+
+
+# ---------------------------------------------------------------------------- metrics
+
+
+def image_metrics(pred: Tensor, target: Tensor, lpips: LpipsMetric) -> dict[str, float]:
+    """PSNR, SSIM (and LPIPS when available) of two (3, H, W) images."""
+    out = {"psnr": float(psnr(pred, target)), "ssim": float(ssim(pred[None], target[None]))}
+    if lpips.available:
+        out["lpips"] = float(lpips.fn(pred[None], target[None])[0])
+    return out
+
+
+def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_options: dict) -> dict:
+    row: dict = {"view": v.name, "split": v.split,
+                 "psnr_vs_rainy": float(psnr(v.rendered, v.rainy))}
+    if v.clean is not None:
+        row.update(image_metrics(v.rendered, v.clean, lpips))
+        if v.split == "train":
+            row.update({f"rainy_input_{k}": x for k, x in image_metrics(v.rainy, v.clean, lpips).items()})
+            for key, img in v.post.items():
+                row.update({f"{key}_{k}": x for k, x in image_metrics(img, v.clean, lpips).items()})
+    if v.rain is not None:
+        row["rain_angle_deg"] = streak_angle_deg(v.rain, angle_options)
+        row["residual_angle_deg"] = streak_angle_deg(v.rainy - v.rendered, angle_options)
+        if v.true_rain is not None:
+            row["rain_correlation"] = correlation(v.rain, v.true_rain)
+    if v.true_rain is not None and v.split == "train":
+        row["rain_angle_true_deg"] = streak_angle_deg(v.true_rain, angle_options)
+    return row
+
+
+def _mean(values: list) -> float | None:
+    values = [v for v in values if v is not None]
     return sum(values) / len(values) if values else None
+
+
+def summarize(rows: list[dict]) -> dict[str, float]:
+    """Means over views of every numeric per-view value, keyed ``<split>_<key>`` (the rainy
+    floor and the rain statistics, defined on training views only, keep their own names)."""
+    summary: dict[str, float] = {}
+    for split in ("train", "heldout"):
+        rows_s = [r for r in rows if r["split"] == split]
+        keys = sorted({k for r in rows_s for k, x in r.items() if isinstance(x, float) or x is None})
+        for k in keys:
+            values = [r.get(k) for r in rows_s]
+            value = mean_angle_deg([x for x in values if x is not None]) if k in ANGLE_KEYS else _mean(values)
+            if k in RAIN_KEYS:  # None stays: "the predicted rain has no streaks", not "not measured"
+                summary[k] = value
+            elif value is None:
+                continue
+            elif k.startswith("rainy_input_"):
+                summary[k] = value
+            else:
+                summary[f"{split}_{k}"] = value
+    pairs = [(r["rain_angle_deg"], r["rain_angle_true_deg"]) for r in rows
+             if r.get("rain_angle_deg") is not None and r.get("rain_angle_true_deg") is not None]
+    if pairs:
+        summary["rain_angle_error_deg"] = _mean([angle_difference_deg(a, b) for a, b in pairs])
+    return dict(sorted(summary.items()))
+
+
+def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: int = 0
+                   ) -> tuple[list[dict], list[ViewImages]]:
+    """Per-view metrics of every view, and the images of the first ``keep`` training views."""
+    lpips = lpips or load_lpips(pipeline.device)
+    options = _agr_options(pipeline)
+    scene = pipeline.scene
+    rows, kept = [], []
+    for i in list(scene.train_indices) + list(scene.eval_indices):
+        v = view_images(pipeline, i)
+        rows.append(view_metrics(v, lpips, options))
+        if v.split == "train" and len(kept) < keep:
+            kept.append(v)
+    return rows, kept
 
 
 @torch.no_grad()
 def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None) -> dict:
-    scene, dev = pipeline.scene, pipeline.device
-    has_clean = scene.clean_images is not None
-    per_view = []
-    for split, indices in (("train", scene.train_indices), ("heldout", scene.eval_indices)):
-        for i in indices:
-            rendered = render_image(pipeline, i)
-            rainy = _image(scene.images[i], dev)
-            row = {"view": scene.image_names[i], "split": split,
-                   "psnr_vs_rainy": float(psnr(rendered, rainy))}
-            if has_clean:
-                clean = _image(scene.clean_images[i], dev)
-                row["psnr"] = float(psnr(rendered, clean))
-                if split == "train":
-                    row["psnr_rainy_input"] = float(psnr(rainy, clean))
-                    if pipeline.rain_head is not None:
-                        rain = predict_rain(pipeline, i)
-                        for key, post in pipeline.postprocess.items():
-                            row[f"psnr_{key}"] = float(psnr(post(rendered, rain, rainy), clean))
-            per_view.append(row)
-    summary: dict[str, float] = {}
-    for split in ("train", "heldout"):
-        rows = [r for r in per_view if r["split"] == split]
-        keys = sorted({k for r in rows for k in r if k.startswith("psnr")})
-        for k in keys:
-            value = _mean([r[k] for r in rows if k in r])
-            if value is not None:
-                summary[f"{split}_{k}"] = value
-    return {"summary": summary, "per_view": per_view, "has_clean": has_clean}
+    """The whole protocol on a trained pipeline; with ``run_dir`` it also saves the comparison
+    strips of a few training views under ``run_dir/renders/strips`` (used by the report)."""
+    lpips = load_lpips(pipeline.device)
+    rows, kept = evaluate_views(pipeline, lpips, keep=STRIP_VIEWS if run_dir is not None else 0)
+    if run_dir is not None:
+        from rainyscape.eval.images import save_strip
+
+        for v in kept:
+            save_strip(v, Path(run_dir) / "renders" / "strips" / f"{Path(v.name).stem}.png")
+    scene = pipeline.scene
+    return {
+        "scene": scene.name,
+        "method": pipeline.config.method,
+        "has_clean": scene.clean_images is not None,
+        "has_rain_head": pipeline.rain_head is not None,
+        "postprocess": list(pipeline.postprocess),
+        "views": {"train": len(scene.train_indices), "heldout": len(scene.eval_indices),
+                  "width": scene.width, "height": scene.height},
+        "lpips": lpips.describe(),
+        "summary": summarize(rows),
+        "per_view": rows,
+    }
 
 
 def write_metrics(run_dir: Path, metrics: dict) -> Path:
+    """Write ``metrics.json`` atomically, then the run's ``report.html`` presenting it.
+
+    A report that cannot be written is reported on stderr and does not fail the run (the
+    metrics are safe; ``rs-eval RUN_DIR`` rebuilds it)."""
     path = Path(run_dir) / "metrics.json"
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(metrics, indent=2))
     tmp.replace(path)
+    try:
+        from rainyscape.eval.report import write_report
+
+        write_report(run_dir)
+    except Exception as exc:  # the report is a view of the metrics; never lose a run over it
+        print(f"rainyscape: warning: could not write {Path(run_dir) / 'report.html'}: "
+              f"{type(exc).__name__}: {exc}", file=sys.stderr)
     return path

@@ -1,0 +1,200 @@
+"""transforms-json: nerfstudio / instant-ngp / Blender ``transforms.json``.
+
+Camera-to-world matrices are OpenGL (x right, y up, looking down -z). Intrinsics come from
+``fl_x`` / ``fl_y`` / ``cx`` / ``cy`` / ``w`` / ``h`` (top level, overridable per frame) or
+Blender's ``camera_angle_x`` (and ``camera_angle_y``). Distortion (``k1 k2 k3 k4 p1 p2``,
+``camera_model`` OPENCV or OPENCV_FISHEYE) is removed from the images with OpenCV, keeping
+the pinhole intrinsics. Clean images: a folder named by ``clean=`` holding the same file
+names, or (``auto``) the authors' ``_rain`` -> ``_wo_rain`` sibling of the image folder.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from rainyscape.cameras import Cameras, opengl_to_opencv
+from rainyscape.components import DataParser
+from rainyscape.dataparsers.base import CommonParserConfig, assemble_scene
+from rainyscape.dataparsers.images import IMAGE_SUFFIXES, clean_sibling, read_rgb
+from rainyscape.errors import DataError
+from rainyscape.scene import SceneData
+
+INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2",
+                  "camera_angle_x", "camera_angle_y", "camera_model")
+
+
+@dataclass
+class TransformsJsonConfig(CommonParserConfig):
+    transforms: str = "transforms.json"  # file name inside the scene folder
+    clean: str = "auto"  # folder of clean images matched by file name; auto: `_rain` -> `_wo_rain`
+
+
+@dataclass
+class FrameCamera:
+    c2w_gl: np.ndarray  # (4, 4)
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    model: str
+    dist: dict
+
+
+def _number(value, where: str) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise DataError(f"{where} is '{value}', not a number") from None
+    if not math.isfinite(x):
+        raise DataError(f"{where} is {value} (not a finite number)")
+    return x
+
+
+def resolve_image(root: Path, file_path: str) -> Path:
+    """A frame's image; Blender omits the extension ('./train/r_0')."""
+    p = (root / file_path).resolve()
+    if p.is_file():
+        return p
+    for suffix in IMAGE_SUFFIXES:
+        q = p.with_name(p.name + suffix)
+        if q.is_file():
+            return q
+    raise DataError(f"{root / file_path}: image listed in transforms.json not found")
+
+
+def frame_camera(meta: dict, frame: dict, where: str, image_size: tuple[int, int]) -> FrameCamera:
+    """Intrinsics and pose of one frame; per-frame keys override the top level."""
+    get = {k: frame.get(k, meta.get(k)) for k in INTRINSIC_KEYS}
+    width = int(_number(get["w"], f"{where}: w")) if get["w"] is not None else image_size[0]
+    height = int(_number(get["h"], f"{where}: h")) if get["h"] is not None else image_size[1]
+    if get["fl_x"] is not None:
+        fx = _number(get["fl_x"], f"{where}: fl_x")
+        fy = _number(get["fl_y"], f"{where}: fl_y") if get["fl_y"] is not None else fx
+    elif get["camera_angle_x"] is not None:
+        fx = 0.5 * width / math.tan(0.5 * _number(get["camera_angle_x"], f"{where}: camera_angle_x"))
+        fy = (0.5 * height / math.tan(0.5 * _number(get["camera_angle_y"], f"{where}: camera_angle_y"))
+              if get["camera_angle_y"] is not None else fx)
+    else:
+        raise DataError(f"{where}: no focal length (fl_x or camera_angle_x)")
+    if fx <= 0 or fy <= 0:
+        raise DataError(f"{where}: focal length must be positive (fl_x={fx:g}, fl_y={fy:g})")
+    cx = _number(get["cx"], f"{where}: cx") if get["cx"] is not None else width / 2.0
+    cy = _number(get["cy"], f"{where}: cy") if get["cy"] is not None else height / 2.0
+    if "transform_matrix" not in frame:
+        raise DataError(f"{where}: no transform_matrix")
+    try:
+        mat = np.asarray(frame["transform_matrix"], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{where}: transform_matrix is not a matrix of numbers") from None
+    if mat.shape == (3, 4):
+        mat = np.vstack([mat, [0, 0, 0, 1]])
+    if mat.shape != (4, 4):
+        raise DataError(f"{where}: transform_matrix must be 4x4 (or 3x4), got shape {mat.shape}")
+    if not np.isfinite(mat).all():
+        raise DataError(f"{where}: transform_matrix holds non-finite numbers")
+    dist = {k: _number(get[k], f"{where}: {k}") for k in ("k1", "k2", "k3", "k4", "p1", "p2") if get[k] is not None}
+    model = str(get["camera_model"] or ("OPENCV" if dist else "PINHOLE")).upper()
+    return FrameCamera(mat, fx, fy, cx, cy, width, height, model, dist)
+
+
+def undistort(image: np.ndarray, cam: FrameCamera, where: str) -> np.ndarray:
+    """Remove lens distortion, keeping the pinhole intrinsics (fx, fy, cx, cy)."""
+    if not any(abs(v) > 0 for v in cam.dist.values()):
+        return image
+    k = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]])
+    d = cam.dist
+    if cam.model == "OPENCV_FISHEYE":
+        coeffs = np.array([d.get("k1", 0), d.get("k2", 0), d.get("k3", 0), d.get("k4", 0)])
+        return cv2.fisheye.undistortImage(image, k, coeffs, Knew=k)
+    if cam.model in ("OPENCV", "PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        coeffs = np.array([d.get("k1", 0), d.get("k2", 0), d.get("p1", 0), d.get("p2", 0), d.get("k3", 0)])
+        return cv2.undistort(image, k, coeffs)
+    raise DataError(f"{where}: camera_model {cam.model} is not supported (OPENCV, OPENCV_FISHEYE, PINHOLE)")
+
+
+class TransformsJsonParser(DataParser):
+    """nerfstudio / instant-ngp / Blender transforms.json (OpenGL camera-to-world)."""
+
+    description = "nerfstudio / instant-ngp / Blender transforms.json"
+    Config = TransformsJsonConfig
+
+    def __init__(self, config: TransformsJsonConfig | None = None):
+        super().__init__(config or TransformsJsonConfig())
+
+    def parse(self, path: Path) -> SceneData:
+        cfg: TransformsJsonConfig = self.config
+        root = Path(path)
+        json_path = root / cfg.transforms if root.is_dir() else root
+        if root.is_file():
+            root = root.parent
+        if not json_path.is_file():
+            raise DataError(f"{json_path}: file not found")
+        try:
+            meta = json.loads(json_path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise DataError(f"{json_path}: not a readable JSON file ({exc})") from None
+        frames = meta.get("frames") if isinstance(meta, dict) else None
+        if not frames or not isinstance(frames, list):
+            raise DataError(f"{json_path}: no 'frames' list")
+        images, cams, files = [], [], []
+        for i, frame in enumerate(frames):
+            where = f"{json_path}, frame {i}"
+            if not isinstance(frame, dict) or "file_path" not in frame:
+                raise DataError(f"{where}: no file_path")
+            file = resolve_image(root, str(frame["file_path"]))
+            img = read_rgb(file)
+            cam = frame_camera(meta, frame, where, (img.shape[1], img.shape[0]))
+            if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
+                raise DataError(f"{file}: image is {img.shape[1]}x{img.shape[0]}, transforms.json says "
+                                f"{cam.width}x{cam.height}")
+            if cams and (cam.width, cam.height) != (cams[0].width, cams[0].height):
+                raise DataError(f"{file}: image is {cam.width}x{cam.height}, expected "
+                                f"{cams[0].width}x{cams[0].height} like {files[0].name}")
+            images.append(undistort(img, cam, where))
+            cams.append(cam)
+            files.append(file)
+        names = [f.name for f in files]
+        if len(set(names)) != len(names):
+            names = [str(f.relative_to(root)) if f.is_relative_to(root) else str(f) for f in files]
+        w, h = cams[0].width, cams[0].height
+        c2w = opengl_to_opencv(torch.from_numpy(np.stack([c.c2w_gl for c in cams]))).float()
+        cameras = Cameras(c2w, *(torch.tensor([getattr(c, k) for c in cams], dtype=torch.float32)
+                                 for k in ("fx", "fy", "cx", "cy")), w, h)
+        clean = self._clean(root, files, cams)
+        return assemble_scene(
+            cfg, name=root.resolve().name, source=root, images=torch.from_numpy(np.stack(images)),
+            cameras=cameras, image_names=names, clean_images=clean,
+            metadata={"format": "transforms-json", "transforms": str(json_path)})
+
+    def _clean(self, root: Path, files: list[Path], cams: list[FrameCamera]):
+        cfg: TransformsJsonConfig = self.config
+        if not cfg.clean:
+            return None
+        out = []
+        for f, cam in zip(files, cams):
+            if cfg.clean == "auto":
+                folder = clean_sibling(f.parent)
+                if folder is None:
+                    return None
+            else:
+                folder = root / cfg.clean
+                if not folder.is_dir():
+                    raise DataError(f"{folder}: clean image folder not found (clean=)")
+            p = folder / f.name
+            if not p.is_file():
+                raise DataError(f"{folder}: no clean image named {f.name}")
+            img = read_rgb(p)
+            if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
+                raise DataError(f"{p}: clean image is {img.shape[1]}x{img.shape[0]}, the rainy one "
+                                f"{cam.width}x{cam.height}")
+            out.append(undistort(img, cam, str(p)))
+        return torch.from_numpy(np.stack(out))

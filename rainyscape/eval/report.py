@@ -1,0 +1,276 @@
+"""``report.html`` of a run: one self-contained page (every image inlined as base64 PNG, no
+scripts, no external links) with the training curves (loss terms; PSNR vs clean and vs rainy
+over steps: the paper's Fig. 2 and 6), the comparison strips, the metric table and the config.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+from pathlib import Path
+
+from rainyscape.errors import RainyScapeError
+
+METRICS = ("psnr", "ssim", "lpips")
+MAX_STRIPS = 6  # comparison strips shown (rs-render writes one per view under renders/strips)
+CSS = """
+body{font-family:system-ui,sans-serif;margin:24px auto;max-width:1200px;color:#222;padding:0 16px}
+h1{font-size:1.5em}h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ddd}
+table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}
+th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}
+img{max-width:100%;image-rendering:pixelated;display:block;margin:6px 0}
+pre{background:#f7f7f7;padding:8px;overflow:auto;font-size:12px}.note{color:#666;font-size:.9em}
+"""
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def read_log(path: Path) -> tuple[list[dict], list[dict]]:
+    """Training records and evaluation records of a run's log.jsonl (bad lines skipped:
+    a run killed mid-write leaves a truncated last line)."""
+    train, evals = [], []
+    if not path.is_file():
+        return train, evals
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        (evals if "eval" in rec else train).append(rec)
+    return train, evals
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+# ------------------------------------------------------------------------------- plots
+
+
+def _figure(width: float = 6.4, height: float = 3.4):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height), dpi=100, layout="constrained")
+    return fig, fig.add_subplot(1, 1, 1)
+
+
+def _png_data_uri(png: bytes) -> str:
+    return "data:image/png;base64," + base64.b64encode(png).decode("ascii")
+
+
+def _fig_uri(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return _png_data_uri(buf.getvalue())
+
+
+def loss_plot(train: list[dict]) -> str | None:
+    """Total loss and each loss term over steps (log scale when all are positive)."""
+    if not train:
+        return None
+    fig, ax = _figure()
+    steps = [r["step"] for r in train]
+    ax.plot(steps, [r["loss"] for r in train], label="total", color="black", lw=1.5)
+    for key in sorted({k for r in train for k in r.get("terms", {})}):
+        pts = [(r["step"], r["terms"][key]) for r in train if key in r.get("terms", {})]
+        ax.plot(*zip(*pts), label=key, lw=1)
+    values = [r["loss"] for r in train] + [v for r in train for v in r.get("terms", {}).values()]
+    if values and min(values) > 0:
+        ax.set_yscale("log")
+    _mark_phases(ax, train)
+    ax.set_xlabel("step"), ax.set_ylabel("loss"), ax.legend(fontsize=8), ax.grid(alpha=0.3)
+    return _fig_uri(fig)
+
+
+def psnr_plot(train: list[dict], evals: list[dict]) -> str | None:
+    """PSNR over steps: renders vs clean and vs rainy images (Fig. 2 / 6 of the paper)."""
+    series: dict[str, list[tuple[int, float]]] = {}
+    for rec in evals:
+        for key, value in rec["eval"].items():
+            series.setdefault(key, []).append((rec["step"], value))
+    if not series and not train:
+        return None
+    fig, ax = _figure()
+    names = {"train_psnr_clean": "training views vs clean", "train_psnr_rainy": "training views vs rainy",
+             "heldout_psnr_clean": "held-out views vs clean", "heldout_psnr_rainy": "held-out views vs rainy"}
+    for key, pts in sorted(series.items()):
+        style = "-" if key.endswith("clean") else "--"
+        ax.plot(*zip(*pts), style, marker="o", ms=3, label=names.get(key, key))
+    batch = [(r["step"], r["psnr_rainy"]) for r in train if "psnr_rainy" in r]
+    if batch:
+        ax.plot(*zip(*batch), color="grey", alpha=0.5, lw=0.8, label="batch: B (+R) vs rainy")
+    _mark_phases(ax, train)
+    ax.set_xlabel("step"), ax.set_ylabel("PSNR (dB)"), ax.legend(fontsize=8), ax.grid(alpha=0.3)
+    return _fig_uri(fig)
+
+
+def term_metrics_plot(train: list[dict]) -> str | None:
+    """What loss terms report about themselves (e.g. AGR's estimated angle, robust inliers)."""
+    keys = sorted({k for r in train for k in r.get("metrics", {})})
+    if not keys:
+        return None
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.4, 1.9 * len(keys)), dpi=100, layout="constrained")
+    axes = fig.subplots(len(keys), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, key in zip(axes, keys):
+        pts = [(r["step"], r["metrics"][key]) for r in train
+               if isinstance(r.get("metrics", {}).get(key), (int, float))]
+        if pts:
+            ax.plot(*zip(*pts), lw=1)
+        ax.set_ylabel(key, fontsize=8), ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("step")
+    return _fig_uri(fig)
+
+
+def _mark_phases(ax, train: list[dict]) -> None:
+    joint = [r["step"] for r in train if r.get("phase") == "joint"]
+    if joint and any(r.get("phase") == "warmup" for r in train):
+        ax.axvline(min(joint), color="grey", ls=":", lw=1)
+        ax.text(min(joint), ax.get_ylim()[1], " joint phase", fontsize=7, va="top", color="grey")
+
+
+# ------------------------------------------------------------------------------ tables
+
+
+def _fmt(value, digits: int = 3) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return html.escape(str(value))
+
+
+def metric_rows(summary: dict, postprocess: list[str]) -> list[tuple[str, dict]]:
+    """(label, {metric: value}) rows of the evaluation protocol, in reading order."""
+    rows = [("rainy input (floor)", "rainy_input_"), ("render, training views", "train_")]
+    rows += [(f"render + {p}, training views", f"train_{p}_") for p in postprocess]
+    rows.append(("render, held-out views", "heldout_"))
+    out = []
+    for label, prefix in rows:
+        values = {m: summary.get(prefix + m) for m in METRICS}
+        if any(v is not None for v in values.values()):
+            out.append((label, values))
+    return out
+
+
+def metric_table(metrics: dict) -> str:
+    rows = metric_rows(metrics.get("summary", {}), metrics.get("postprocess", []))
+    if not rows:
+        return "<p>No metrics against clean images (the scene has none).</p>"
+    head = "<tr><th></th><th>PSNR ↑</th><th>SSIM ↑</th><th>LPIPS ↓</th></tr>"
+    body = "".join(
+        f"<tr><td>{html.escape(label)}</td><td>{_fmt(v['psnr'], 2)}</td><td>{_fmt(v['ssim'])}</td>"
+        f"<td>{_fmt(v['lpips']) if v['lpips'] is not None else 'n/a'}</td></tr>" for label, v in rows)
+    note = ""
+    lp = metrics.get("lpips", {})
+    if lp and not lp.get("available", False):
+        note = f"<p class='note'>LPIPS unavailable: {html.escape(lp.get('reason', ''))}.</p>"
+    return f"<table>{head}{body}</table>{note}"
+
+
+def rain_table(summary: dict) -> str:
+    names = [("rain_angle_deg", "predicted rain streak angle (deg)"),
+             ("residual_angle_deg", "streak angle of the residual I - B (deg)"),
+             ("rain_angle_true_deg", "true rain streak angle (deg)"),
+             ("rain_angle_error_deg", "angle error, predicted vs true (deg)"),
+             ("rain_correlation", "correlation, predicted vs true rain layer")]
+    rows = [(label, summary[k]) for k, label in names if k in summary]
+    if not rows:
+        return ""
+    body = "".join(f"<tr><td>{html.escape(l)}</td><td>{_fmt(v)}</td></tr>" for l, v in rows)
+    return f"<h2>Rain</h2><table>{body}</table>"
+
+
+def per_view_table(rows: list[dict]) -> str:
+    if not rows:
+        return ""
+    keys = [k for k in dict.fromkeys(k for r in rows for k in r) if k not in ("view", "split")]
+    head = "<tr><th>view</th><th>split</th>" + "".join(f"<th>{html.escape(k)}</th>" for k in keys) + "</tr>"
+    body = "".join(
+        f"<tr><td>{html.escape(r['view'])}</td><td>{r['split']}</td>"
+        + "".join(f"<td>{_fmt(r.get(k))}</td>" for k in keys) + "</tr>" for r in rows)
+    return (f"<details><summary>Per-view values ({len(rows)} views)</summary>"
+            f"<table>{head}{body}</table></details>")
+
+
+# ------------------------------------------------------------------------------ images
+
+
+def _image_uri(path: Path) -> str:
+    return _png_data_uri(path.read_bytes())
+
+
+def image_section(title: str, paths: list[Path], caption: str = "") -> str:
+    if not paths:
+        return ""
+    imgs = "".join(f"<p class='note'>{html.escape(p.stem)}</p><img alt='{html.escape(p.stem)}' "
+                   f"src='{_image_uri(p)}'>" for p in paths)
+    cap = f"<p class='note'>{html.escape(caption)}</p>" if caption else ""
+    return f"<h2>{html.escape(title)}</h2>{cap}{imgs}"
+
+
+# ------------------------------------------------------------------------------- page
+
+
+def _max_iters(run_dir: Path) -> str:
+    import yaml
+
+    try:
+        return str(yaml.safe_load((run_dir / "config.yml").read_text())["trainer"]["max_iters"])
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return "?"
+
+
+def build_report(run_dir: Path) -> str:
+    run_dir = Path(run_dir)
+    if not (run_dir / "config.yml").is_file():
+        raise RainyScapeError(f"{run_dir}: not a run folder (no config.yml)")
+    metrics = _read_json(run_dir / "metrics.json")
+    status = _read_json(run_dir / "status.json")
+    train, evals = read_log(run_dir / "log.jsonl")
+    title = f"{metrics.get('method', run_dir.parent.name)} on {metrics.get('scene', run_dir.parent.parent.name)}"
+    step = train[-1]["step"] if train else status.get("step", 0)
+    state = status.get("state", "")
+    # While the run itself writes this page its status still says "running": show only states
+    # that tell the reader something (failed, interrupted, stopped early).
+    note = f" · {state}" if state in ("failed", "interrupted", "stopped") else ""
+    parts = [f"<h1>RainyScape run: {html.escape(title)}</h1>",
+             f"<p class='note'>{html.escape(str(run_dir.resolve()))} · step {step} of "
+             f"{_max_iters(run_dir)}{html.escape(note)} · {html.escape(str(status.get('time', '')))}</p>"]
+    parts.append("<h2>Metrics</h2>" + (metric_table(metrics) if metrics else
+                                       "<p>No metrics.json yet (run rs-eval RUN_DIR).</p>"))
+    parts.append(rain_table(metrics.get("summary", {})))
+    plots = [("Loss terms", loss_plot(train)),
+             ("PSNR during training (paper Fig. 2 and 6)", psnr_plot(train, evals)),
+             ("Loss-term diagnostics", term_metrics_plot(train))]
+    for name, uri in plots:
+        if uri:
+            parts.append(f"<h2>{name}</h2><img alt='{html.escape(name)}' src='{uri}'>")
+    strips = sorted((run_dir / "renders" / "strips").glob("*.png"))[:MAX_STRIPS]
+    parts.append(image_section("Comparison strips", strips,
+                               "rainy input | render | (post-processed) | ground truth | predicted rain | true rain"))
+    parts.append(image_section("Embedding study (paper Fig. 8)",
+                               sorted((run_dir / "renders").glob("embedding_study*.png")),
+                               "predicted rain with N(0, 0.5) noise added to the scene state s, "
+                               "the view vector v and the camera vector p"))
+    parts.append(per_view_table(metrics.get("per_view", [])))
+    config_text = (run_dir / "config.yml").read_text()
+    parts.append(f"<h2>Configuration</h2><pre>{html.escape(config_text)}</pre>")
+    body = "\n".join(p for p in parts if p)
+    return (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+            f"<title>{html.escape(title)}</title><style>{CSS}</style></head>\n<body>\n{body}\n</body></html>\n")
+
+
+def write_report(run_dir: Path) -> Path:
+    path = Path(run_dir) / "report.html"
+    tmp = path.with_suffix(".html.tmp")
+    tmp.write_text(build_report(run_dir), encoding="utf-8")
+    tmp.replace(path)
+    return path

@@ -1,0 +1,280 @@
+"""The fast CPU field: explicit grids + tiny MLP, grown coarse-to-fine.
+
+Space is contracted into the cube [-2, 2]^3 (the scene box maps to [-1, 1]^3, everything
+out to infinity to the shell around it). A dense grid holds density (one channel: the
+cheapest lookup per sample on a CPU) and a TensoRF-style factorised grid holds colour
+features for a tiny MLP. Samples are evenly spaced (in cells) up to where the ray
+leaves the scene box, then evenly spaced in inverse distance out to ``far``; an occupancy
+grid skips empty space, and colour is only computed where a sample's weight matters.
+Light that reaches ``far`` takes a learned sky colour per direction.
+
+The grid starts coarse and grows on a schedule: an explicit grid has no spectral bias of its
+own, so its resolution is what makes it fit low frequencies first (the paper's prior).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from rainyscape.components import Callback, ParamGroup, TrainState
+from rainyscape.errors import ConfigError
+from rainyscape.fields.contraction import contract, contraction_stretch
+from rainyscape.fields.encoding import encoded_dim, positional_encoding
+from rainyscape.fields.feature_grids import DenseGrid, VMGrid, resample
+from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
+from rainyscape.fields.optim_state import resize_adam_state
+from rainyscape.fields.ray_field import RayField
+from rainyscape.fields.rendering import composite, compositing_weights
+from rainyscape.fields.sampling import ray_box_intersection
+from rainyscape.scene import SceneData
+
+DENSITY_GROUP, COLOR_GROUP, NETWORK_GROUP = "field_density", "field_color", "field_network"
+
+
+def growth_resolution(step: int, max_iters: int, initial: int, final: int,
+                      growth_at: tuple[float, ...]) -> int:
+    """Grid resolution at ``step``: ``initial``, then after each fraction in ``growth_at`` of
+    the run one more of len(growth_at) steps evenly spaced in log resolution up to ``final``."""
+    if not growth_at:
+        return final
+    done = sum(step >= round(f * max_iters) for f in growth_at)
+    level = done / len(growth_at)
+    return int(round(math.exp(math.log(initial) * (1 - level) + math.log(final) * level)))
+
+
+def sky_frame(up: Tensor) -> Tensor:
+    """Orthonormal columns (e1, e2, up) for a given up vector."""
+    up = F.normalize(up, dim=0)
+    helper = torch.eye(3, dtype=up.dtype, device=up.device)[int(up.abs().argmin())]
+    e1 = F.normalize(torch.linalg.cross(helper, up), dim=0)
+    return torch.stack([e1, torch.linalg.cross(up, e1), up], 1)
+
+
+class ColorNet(nn.Module):
+    """Colour features + view direction -> rgb (two small hidden layers)."""
+
+    def __init__(self, feature_dim: int, view_freqs: int, hidden: int):
+        super().__init__()
+        self.view_freqs = view_freqs
+        self.mlp = nn.Sequential(
+            nn.Linear(feature_dim + encoded_dim(3, view_freqs), hidden), nn.ReLU(),
+            nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 3))
+
+    def forward(self, features: Tensor, viewdirs: Tensor) -> Tensor:
+        return torch.sigmoid(self.mlp(torch.cat([features, positional_encoding(viewdirs, self.view_freqs)], -1)))
+
+
+class GridField(RayField):
+    """Fast field: dense density + factorised colour grid, tiny MLP, occupancy grid, coarse-to-fine."""
+
+    description = "fast grid field (CPU/GPU): dense density + factorised colour grid, tiny MLP, coarse-to-fine"
+
+    @dataclass
+    class Config:
+        resolution_init: int = 16  # grid samples per axis of the contracted cube at the start ...
+        resolution_final: int = 128  # ... and after the last growth
+        growth_at: tuple[float, ...] = (0.05, 0.1, 0.2, 0.3, 0.4)  # fractions of the run where it grows
+        color_components: int = 8  # factorised colour grid: components per mode (x3 modes)
+        feature_dim: int = 27  # colour features fed to the MLP
+        hidden: int = 64  # MLP width
+        view_freqs: int = 2  # positional-encoding frequencies of the view direction
+        step_ratio: float = 0.5  # sample spacing in grid cells
+        density_scale: float = 25.0  # sigma = scale * softplus(grid + shift)
+        density_shift: float = -10.0  # the grid starts at 0: nearly empty space
+        box_scale: float = 1.0  # the uncontracted region: the scene box scaled about its centre
+        background: Literal["sky", "learned", "black", "white"] = "sky"  # sky: colour per direction
+        occupancy_resolution: int = 64
+        occupancy_from: float = 0.1  # fraction of the run before the first occupancy update
+        occupancy_every: int = 100  # steps between updates
+        occupancy_threshold: float = 0.01  # opacity of one step below which a cell is empty
+        weight_threshold: float = 1e-4  # colour is computed only where a sample's weight reaches this
+        lr_density: float = 0.1
+        lr_color: float = 0.02  # colour factors and sky
+        lr_network: float = 1e-3
+        lr_decay: float = 0.1  # every lr x lr_decay per lr_decay_steps (exponentially)
+        lr_decay_steps: int = 3000
+        lr_joint_factor: float | None = None  # after the warm-up every lr x this (None: keep the schedule)
+        chunk: int = 8192  # rays per chunk when rendering without gradients
+        train_chunk: int = 0  # rays per gradient-checkpointed chunk in training (0: one pass)
+
+    def __init__(self, config: Config, scene: SceneData):
+        super().__init__()
+        c = self.config = config
+        if not 2 <= c.resolution_init <= c.resolution_final:
+            raise ConfigError(f"field: need 2 <= resolution_init <= resolution_final, got "
+                              f"{c.resolution_init}, {c.resolution_final}")
+        if any(not 0 <= f <= 1 for f in c.growth_at):
+            raise ConfigError(f"field.growth_at: fractions of the run in [0, 1], got {c.growth_at}")
+        if c.step_ratio <= 0:
+            raise ConfigError(f"field.step_ratio must be > 0, got {c.step_ratio}")
+        if not 0 < scene.near < scene.far:
+            raise ConfigError(f"scene {scene.name}: need 0 < near < far, got {scene.near}, {scene.far}")
+        self.eval_chunk, self.train_chunk = c.chunk, c.train_chunk
+        self.near, self.far = float(scene.near), float(scene.far)
+        box = scene.scene_box.float()
+        center, half = 0.5 * (box[0] + box[1]), 0.5 * (box[1] - box[0]) * c.box_scale
+        self.register_buffer("box_center", center, persistent=False)
+        self.register_buffer("box_half", half.clamp_min(1e-6), persistent=False)
+        # The sky map's frame: latitude about "up", against the cameras' mean down axis (OpenCV y).
+        self.register_buffer("sky_frame", sky_frame(-scene.cameras.c2w[:, :3, 1].float().mean(0)),
+                             persistent=False)
+        self.density = DenseGrid(1, c.resolution_init)
+        self.color = VMGrid(c.color_components, c.resolution_init)
+        self.basis = nn.Linear(3 * c.color_components, c.feature_dim, bias=False)
+        self.color_net = ColorNet(c.feature_dim, c.view_freqs, c.hidden)
+        self.sky = nn.Parameter(torch.zeros(1, 3, 8, 16)) if c.background == "sky" else None
+        self.sky_color = nn.Parameter(torch.zeros(3)) if c.background == "learned" else None
+        self.occupancy = OccupancyGrid(c.occupancy_resolution)
+
+    # ------------------------------------------------------------------ geometry
+
+    @property
+    def resolution(self) -> int:
+        return self.density.resolution
+
+    def step_size(self) -> float:
+        """Sample spacing in world units inside the scene box."""
+        cell = 4.0 / (self.resolution - 1)  # the grid spans the contracted cube [-2, 2]
+        return self.config.step_ratio * cell * float(self.box_half.mean())
+
+    def _sigma(self, grid_points: Tensor) -> Tensor:
+        raw = self.density(grid_points)[:, 0]
+        return self.config.density_scale * F.softplus(raw + self.config.density_shift)
+
+    def _background(self, directions: Tensor) -> Tensor:
+        c = self.config
+        if c.background == "black":
+            return torch.zeros_like(directions)
+        if c.background == "white":
+            return torch.ones_like(directions)
+        if c.background == "learned":
+            return torch.sigmoid(self.sky_color).expand_as(directions)
+        local = directions @ self.sky_frame  # (x, y, up)
+        lat = torch.asin(local[:, 2].clamp(-1, 1)) / (math.pi / 2)
+        lon = torch.atan2(local[:, 1], local[:, 0]) / math.pi
+        grid = torch.stack([lon, -lat], -1)[None, :, None]  # zenith at the top row
+        sky = F.grid_sample(self.sky, grid, align_corners=False, padding_mode="border")
+        return torch.sigmoid(sky[0, :, :, 0].T)
+
+    def _samples(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+        """Sample distances (R, N) and which are real (R, N), for box-normalised rays."""
+        step = self.step_size()
+        entry, exit_ = ray_box_intersection(o, d, torch.tensor([[-1.0] * 3, [1.0] * 3], device=o.device))
+        # Past the box exit (or the closest approach to it, for rays that miss) samples go
+        # evenly in inverse distance: that is evenly in the contracted coordinate.
+        closest = -(o * d).sum(-1) / (d * d).sum(-1)
+        split = torch.where(exit_ > entry, exit_, closest).clamp(self.near, self.far)
+        n_lin = max(1, math.ceil(float((split.max() - self.near) / step)))
+        n_far = max(1, math.ceil((self.resolution - 1) / 4.0 / self.config.step_ratio))
+        shape = (o.shape[0], 1)
+        jitter = torch.rand(shape, device=o.device) if self.training else torch.full(shape, 0.5, device=o.device)
+        k = torch.arange(n_lin, device=o.device, dtype=o.dtype)
+        t_lin = self.near + (k + jitter) * step
+        valid = t_lin < split[:, None]
+        t_lin = torch.minimum(t_lin, split[:, None])
+        s = (torch.arange(n_far, device=o.device, dtype=o.dtype) + jitter) / n_far
+        t_far = 1.0 / ((1.0 - s) / split[:, None] + s / self.far)
+        t = torch.cat([t_lin, t_far], -1)
+        return t, torch.cat([valid, torch.ones_like(t_far, dtype=torch.bool)], -1)
+
+    # ----------------------------------------------------------------- rendering
+
+    def render_rays(self, origins: Tensor, directions: Tensor, z_scale: Tensor) -> dict[str, Tensor]:
+        # World distances are kept; positions are measured in half box sizes.
+        o = (origins - self.box_center) / self.box_half
+        d = directions / self.box_half
+        t, valid = self._samples(o, d)
+        deltas = torch.cat([t[:, 1:], torch.full_like(t[:, :1], self.far)], -1) - t
+        pts = contract(o[:, None] + t[..., None] * d[:, None])  # (R, N, 3) in [-2, 2]
+        live = valid & self.occupancy.lookup(pts)
+        sigma = torch.zeros_like(t).masked_scatter(live, self._sigma(pts[live] / 2.0))
+        weights, _ = compositing_weights(sigma, deltas.clamp_min(0.0))
+        shade = weights.detach() >= self.config.weight_threshold
+        feats = self.basis(self.color(pts[shade] / 2.0))
+        views = directions[:, None].expand(-1, t.shape[1], -1)[shade]
+        rgb_samples = torch.zeros(*t.shape, 3, dtype=t.dtype, device=t.device)
+        rgb_samples = rgb_samples.masked_scatter(shade[..., None], self.color_net(feats, views))
+        acc = weights.sum(-1)
+        rest = (1.0 - acc).clamp_min(0.0)
+        rgb = composite(weights, rgb_samples) + rest[:, None] * self._background(directions)
+        depth = ((weights * t).sum(-1) + rest * self.far) * z_scale
+        return {"rgb": rgb, "depth": depth, "acc": acc}
+
+    # -------------------------------------------------------------- optimisation
+
+    def param_groups(self) -> list[ParamGroup]:
+        c = self.config
+        color = self.color.factors() + [p for p in (self.sky, self.sky_color) if p is not None]
+        network = list(self.basis.parameters()) + list(self.color_net.parameters())
+
+        def group(name: str, params: list, lr: float) -> ParamGroup:
+            joint = None if c.lr_joint_factor is None else lr * c.lr_joint_factor
+            return ParamGroup(name, params, lr=lr, lr_decay=c.lr_decay,
+                              lr_decay_steps=c.lr_decay_steps, lr_joint=joint)
+
+        return [group(DENSITY_GROUP, self.density.factors(), c.lr_density),
+                group(COLOR_GROUP, color, c.lr_color),
+                group(NETWORK_GROUP, network, c.lr_network)]
+
+    def callbacks(self) -> list[Callback]:
+        return [GridGrowth(self), OccupancyUpdate(self)]
+
+    @torch.no_grad()
+    def grow(self, resolution: int, optimizers: dict[str, torch.optim.Optimizer] | None = None) -> None:
+        """Resample the grids to ``resolution``; Adam's moments are resampled alike."""
+        optimizers = optimizers or {}
+        for name, grid in ((DENSITY_GROUP, self.density), (COLOR_GROUP, self.color)):
+            for param in grid.factors():
+                param.data = resample(param.data, resolution)
+                if name in optimizers:
+                    resize_adam_state(optimizers[name], param, lambda m: resample(m, resolution))
+
+    @torch.no_grad()
+    def update_occupancy(self) -> None:
+        """Mark cells whose density would make one marching step at least threshold-opaque."""
+        c = self.config
+        centers = cell_centers(self.occupancy.resolution, device=self.box_half.device)
+        sigma = self._sigma(centers.reshape(-1, 3) / 2.0).reshape(centers.shape[:-1])
+        step = self.step_size() * contraction_stretch(centers)
+        alpha = 1.0 - torch.exp(-sigma * step)
+        self.occupancy.set(occupied_cells(alpha, c.occupancy_threshold))
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        # A checkpoint may hold grown grids: match their size before copying.
+        key = "density.grid"
+        if key in state_dict and state_dict[key].shape[-1] != self.resolution:
+            self.grow(int(state_dict[key].shape[-1]))
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+
+class GridGrowth(Callback):
+    """Grows the grid on the schedule; derives the resolution from the step, so resuming works."""
+
+    def __init__(self, field: GridField):
+        self.field = field
+
+    def before_step(self, state: TrainState) -> None:
+        c = self.field.config
+        target = growth_resolution(state.step, state.max_iters, c.resolution_init,
+                                   c.resolution_final, tuple(c.growth_at))
+        if target != self.field.resolution:
+            self.field.grow(target, state.optimizers)
+
+
+class OccupancyUpdate(Callback):
+    """Refreshes the occupancy grid every ``occupancy_every`` steps once the field has formed."""
+
+    def __init__(self, field: GridField):
+        self.field = field
+
+    def before_step(self, state: TrainState) -> None:
+        c = self.field.config
+        start = round(c.occupancy_from * state.max_iters)
+        if state.step >= start and (state.step - start) % max(1, c.occupancy_every) == 0:
+            self.field.update_occupancy()

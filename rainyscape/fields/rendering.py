@@ -1,0 +1,34 @@
+"""Volume-rendering quadrature (NeRF, Max 1995) on samples laid out densely per ray.
+
+A ray's samples are intervals [t_i, t_i + delta_i) of constant density sigma_i and colour
+c_i. Then alpha_i = 1 - exp(-sigma_i delta_i), T_i = exp(-sum_{j<i} sigma_j delta_j) and
+C = sum_i T_i alpha_i c_i, which is exact for piecewise-constant density and colour.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+FAR_DELTA = 1e10  # the last NeRF sample reaches to infinity: it absorbs what light is left
+
+
+def sample_deltas(t: Tensor, last: float | Tensor = FAR_DELTA) -> Tensor:
+    """Interval lengths t_{i+1} - t_i, the last one ``last`` (NeRF: 1e10)."""
+    last_t = torch.as_tensor(last, dtype=t.dtype, device=t.device).expand_as(t[..., :1])
+    return torch.cat([t[..., 1:] - t[..., :-1], last_t], -1)
+
+
+def compositing_weights(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
+    """Weights T_i alpha_i and transmittance T_i (both (..., N)) from densities and lengths."""
+    optical = sigma * deltas
+    alpha = 1.0 - torch.exp(-optical)
+    # Exclusive cumulative sum: the light that survives everything before sample i.
+    before = torch.cumsum(optical, -1) - optical
+    transmittance = torch.exp(-before)
+    return transmittance * alpha, transmittance
+
+
+def composite(weights: Tensor, values: Tensor) -> Tensor:
+    """sum_i w_i v_i: (..., N) weights with (..., N, C) values -> (..., C)."""
+    return (weights[..., None] * values).sum(-2)

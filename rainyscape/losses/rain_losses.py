@@ -1,0 +1,88 @@
+"""The rain decomposition losses of the paper (III-D) on I = B + R, images only.
+
+B: the field's render, I: the rainy input, R: the predicted rain (B, 3, h, w). The
+residual r = I - B - R. Weights live in the method config (``LossConfig.weight``); the
+paper's are likelihood 0.1, reconstruction 500, tv 0.5.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from rainyscape.components import Loss, LossContext
+
+
+def decomposition_residual(ctx: LossContext) -> Tensor:
+    """r = I - B - R (R counts as 0 when no rain head ran)."""
+    r = ctx.target - ctx.rendered
+    return r if ctx.rain is None else r - ctx.rain
+
+
+def likelihood_loss(residual: Tensor, eps: float = 1e-6) -> Tensor:
+    """mean(r^2) / (var(r) + eps) with the variance detached (a Gaussian likelihood whose
+    noise level follows the current fit, so the term keeps a steady scale)."""
+    var = residual.detach().var(unbiased=False)
+    return residual.pow(2).mean() / (var + eps)
+
+
+def reconstruction_loss(residual: Tensor) -> Tensor:
+    """mean(r^2)."""
+    return residual.pow(2).mean()
+
+
+def total_variation(images: Tensor) -> Tensor:
+    """Anisotropic L1 TV: (sum |dx| + sum |dy|) / number of elements of ``images``."""
+    dx = (images[..., :, 1:] - images[..., :, :-1]).abs().sum()
+    dy = (images[..., 1:, :] - images[..., :-1, :]).abs().sum()
+    return (dx + dy) / images.numel()
+
+
+class Likelihood(Loss):
+    """Likelihood of I given B + R: residual energy over its (detached) variance."""
+
+    description = "likelihood: mean(r^2) / (var(r) + eps), r = I - B - R"
+
+    @dataclass
+    class Config:
+        eps: float = 1e-6
+
+    def __init__(self, config: "Likelihood.Config | None" = None):
+        super().__init__(config or self.Config())
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        return likelihood_loss(decomposition_residual(ctx), self.config.eps)
+
+
+class Reconstruction(Loss):
+    """Reconstruction of the rainy input: mean((I - B - R)^2)."""
+
+    description = "reconstruction: mean((I - B - R)^2)"
+
+    @dataclass
+    class Config:
+        pass
+
+    def __init__(self, config: "Reconstruction.Config | None" = None):
+        super().__init__(config or self.Config())
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        return reconstruction_loss(decomposition_residual(ctx))
+
+
+class TotalVariation(Loss):
+    """Anisotropic total variation of the rendered background B."""
+
+    description = "tv: L1 total variation of the render B"
+
+    @dataclass
+    class Config:
+        pass
+
+    def __init__(self, config: "TotalVariation.Config | None" = None):
+        super().__init__(config or self.Config())
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        return total_variation(ctx.rendered)

@@ -1,0 +1,59 @@
+"""Plain NeRF baselines (no rain model): the field fits the rainy images with a photometric loss.
+
+- ``nerf``: the fast grid field, a schedule that finishes in minutes on a CPU.
+- ``vanilla-nerf``: the paper's NeRF (nerf-pytorch's field and schedule; the paper's "NeRF" row).
+
+The whole run is one photometric phase (``trainer.warmup_fraction = 1``). Plain data only:
+this module imports no torch.
+"""
+
+from __future__ import annotations
+
+from rainyscape.config import ComponentConfig, LossConfig, MethodSpec, PipelineConfig, TrainerConfig
+
+
+def _photometric() -> dict[str, LossConfig]:
+    return {"photometric": LossConfig("photometric", weight=1.0, phases=("warmup", "joint"))}
+
+
+NERF_ITERS = 1500
+
+nerf = MethodSpec(
+    name="nerf",
+    description="fast grid field fitted to the (rainy) images; minutes on a CPU (no rain model)",
+    config=PipelineConfig(
+        method="nerf",
+        dataparser=ComponentConfig("auto"),
+        field=ComponentConfig("grid", {"lr_decay_steps": NERF_ITERS}),
+        losses=_photometric(),
+        trainer=TrainerConfig(
+            max_iters=NERF_ITERS,
+            warmup_fraction=1.0,
+            warmup_patches=4096,  # random rays from all training views
+            warmup_patch_size=1,
+            eval_every=250,
+            checkpoint_every=500,
+        ),
+    ),
+)
+
+VANILLA_ITERS = 200_000  # nerf-pytorch's default run
+
+vanilla_nerf = MethodSpec(
+    name="vanilla-nerf",
+    description="the paper's NeRF: 8x256 MLP, 64+64 samples, 4096 random rays, nerf-pytorch schedule",
+    config=PipelineConfig(
+        method="vanilla-nerf",
+        dataparser=ComponentConfig("auto"),
+        field=ComponentConfig("nerf-mlp", {}),
+        losses=_photometric(),
+        trainer=TrainerConfig(
+            max_iters=VANILLA_ITERS,
+            warmup_fraction=1.0,
+            warmup_patches=4096,  # nerf-pytorch: 4096 random rays from all images per step
+            warmup_patch_size=1,
+            eval_every=5000,
+            checkpoint_every=10_000,
+        ),
+    ),
+)

@@ -1,0 +1,75 @@
+"""Robust-loss baselines: ``robust-nerf`` and ``robust-3dgs``.
+
+Each is its plain counterpart (``nerf``, ``3dgs``) with the photometric loss replaced by
+the RobustNeRF-style trimmed loss (:mod:`rainyscape.losses.robust`) and no rain head:
+the whole run is one photometric phase (``trainer.warmup_fraction = 1``). Field options
+and the schedule are taken from the counterpart, never copied, so the comparison stays fair
+when those change. Plain data only: this module imports no torch.
+"""
+
+from __future__ import annotations
+
+import copy
+
+from rainyscape.config import LossConfig, MethodSpec, PipelineConfig
+from rainyscape.methods.gaussians import gaussians_3dgs
+from rainyscape.methods.nerf import nerf
+
+# The robust decisions (smoothing, tiles) need neighbouring pixels: train on patches at least
+# this wide, keeping the counterpart's rays per step.
+MIN_PATCH = 16
+
+
+def _patched_trainer(base: PipelineConfig) -> None:
+    """Whole images stay whole; smaller patches (or single rays) grow to MIN_PATCH squares."""
+    t = base.trainer
+    t.warmup_fraction = 1.0
+    if t.warmup_patch_size == 0 or t.warmup_patch_size >= MIN_PATCH:
+        return
+    rays = t.warmup_patches * t.warmup_patch_size ** 2
+    t.warmup_patch_size = MIN_PATCH
+    t.warmup_patches = max(1, round(rays / MIN_PATCH ** 2))
+
+
+def _robust_config(base: MethodSpec, name: str, residual: str, ssim_weight: float,
+                   weight: float) -> PipelineConfig:
+    cfg = copy.deepcopy(base.config)
+    cfg.method = name
+    cfg.rain_head = None
+    cfg.postprocess = {}
+    cfg.losses = {"robust": LossConfig("robust", weight=weight, phases=("warmup", "joint"),
+                                       options={"residual": residual, "ssim_weight": ssim_weight})}
+    _patched_trainer(cfg)
+    return cfg
+
+
+def _photometric_weight(base: MethodSpec) -> float:
+    """The weight the counterpart gives its photometric term in the warm-up phase."""
+    weights = [loss.weight for loss in base.config.losses.values() if "warmup" in loss.phases]
+    return weights[0] if len(weights) == 1 else 1.0
+
+
+def _dssim_fraction(base: MethodSpec) -> float:
+    """The D-SSIM share of the counterpart's warm-up loss (3DGS: 0.2), read from its options."""
+    for loss in base.config.losses.values():
+        if "warmup" not in loss.phases:
+            continue
+        opts = loss.options if isinstance(loss.options, dict) else vars(loss.options)
+        for key in ("ssim_weight", "lambda_dssim", "dssim_weight"):
+            if key in opts:
+                return float(opts[key])
+    return 0.2  # the 3DGS paper's lambda when the counterpart does not say
+
+
+robust_nerf = MethodSpec(
+    name="robust-nerf",
+    description="nerf with a RobustNeRF-style trimmed loss (robust baseline, no rain model)",
+    config=_robust_config(nerf, "robust-nerf", "l2", 0.0, _photometric_weight(nerf)),
+)
+
+robust_3dgs = MethodSpec(
+    name="robust-3dgs",
+    description="3dgs with a RobustNeRF-style trimmed L1 + D-SSIM loss (robust baseline)",
+    config=_robust_config(gaussians_3dgs, "robust-3dgs", "l1", _dssim_fraction(gaussians_3dgs),
+                          _photometric_weight(gaussians_3dgs)),
+)

@@ -1,0 +1,203 @@
+"""Video or photo folder -> a folder of EXIF-free PNG frames, ready for SfM.
+
+From a video, ``num_frames`` frames are spread evenly over the clip: the clip is cut into that
+many consecutive windows and the sharpest frame of each window (variance of the Laplacian) is
+kept, so motion-blurred frames are skipped. Decoding streams through the clip once (after a
+counting pass), holding one candidate per window, so long clips do not fill the memory.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rainyscape.dataparsers.images import IMAGE_SUFFIXES, natural_key
+from rainyscape.errors import DataError
+
+MIN_VIEWS = 2  # two-view geometry is the least SfM can start from
+
+
+@dataclass
+class FrameOptions:
+    num_frames: int = 100  # frames kept from a video (all frames if the clip is shorter)
+    crop: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # fractions cut: top, bottom, left, right
+    max_side: int = 0  # downsize so the longer side is at most this (0: keep the size)
+
+
+@dataclass
+class Frame:
+    name: str  # file name written in the frames folder
+    source: str  # video frame index or the original file name
+    sharpness: float
+
+
+def laplacian_variance(rgb: np.ndarray) -> float:
+    """Sharpness score: variance of the Laplacian of the grey image (higher is sharper)."""
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    return float(cv2.Laplacian(grey, cv2.CV_64F).var())
+
+
+def frame_windows(total: int, target: int) -> np.ndarray:
+    """Window index of each of ``total`` frames when cut into ``min(target, total)`` even windows."""
+    count = max(1, min(target, total))
+    return (np.arange(total) * count) // total
+
+
+def check_crop(crop: tuple[float, float, float, float]) -> None:
+    top, bottom, left, right = crop
+    if min(crop) < 0 or top + bottom >= 1 or left + right >= 1:
+        raise DataError(f"crop {tuple(crop)}: fractions must be >= 0 and leave part of the image "
+                        "(top + bottom < 1, left + right < 1)")
+
+
+def prepare_frame(rgb: np.ndarray, options: FrameOptions) -> np.ndarray:
+    """Crop by fractions, then downsize (area averaging) to ``max_side``."""
+    h, w = rgb.shape[:2]
+    top, bottom, left, right = options.crop
+    y0, y1 = int(round(top * h)), h - int(round(bottom * h))
+    x0, x1 = int(round(left * w)), w - int(round(right * w))
+    rgb = rgb[y0:y1, x0:x1]
+    side = max(rgb.shape[:2])
+    if 0 < options.max_side < side:
+        f = options.max_side / side
+        size = (max(1, round(rgb.shape[1] * f)), max(1, round(rgb.shape[0] * f)))
+        rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(rgb)
+
+
+def _ffmpeg_reason(exc: Exception) -> str:
+    """The last meaningful line of an ffmpeg failure."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    for line in reversed(lines):
+        if "Error" in line or "error" in line or "matches no streams" in line:
+            return re.sub(r"^\[.*?\]\s*", "", line)
+    return lines[-1] if lines else type(exc).__name__
+
+
+def count_video_frames(path: Path) -> int:
+    import imageio_ffmpeg
+
+    if not path.is_file():
+        raise DataError(f"{path}: no such video file")
+    try:
+        frames, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
+    except (RuntimeError, OSError) as exc:
+        raise DataError(f"{path}: cannot read the video ({_ffmpeg_reason(exc)})") from None
+    return int(frames or 0)
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    import imageio.v3 as iio
+
+    iio.imwrite(path, rgb)  # PNG through pillow: no EXIF block is written
+
+
+def extract_video_frames(video: Path, out_dir: Path, options: FrameOptions,
+                         progress: bool = True) -> list[Frame]:
+    """Write the sharpest frame of each window of the clip as ``frame_00001.png`` ..."""
+    import imageio_ffmpeg
+    from tqdm import tqdm
+
+    check_crop(options.crop)
+    total = count_video_frames(video)
+    if total == 0:
+        raise DataError(f"{video}: the video has no frames")
+    if total < MIN_VIEWS:
+        raise DataError(f"{video}: too few frames ({total}); SfM needs at least {MIN_VIEWS} views")
+    windows = frame_windows(total, options.num_frames)
+    best: dict[int, tuple[float, int, np.ndarray]] = {}
+    reader = imageio_ffmpeg.read_frames(str(video))
+    try:
+        meta = next(reader)
+        width, height = meta["size"]
+        bar = tqdm(total=total, desc="reading frames", unit="frame", disable=not progress)
+        for index, raw in enumerate(reader):
+            bar.update(1)
+            if index >= total:  # the counting pass and the decoder may disagree by a frame
+                break
+            rgb = np.frombuffer(raw, np.uint8).reshape(height, width, 3)
+            frame = prepare_frame(rgb, options)
+            score = laplacian_variance(frame)
+            window = int(windows[index])
+            if window not in best or score > best[window][0]:
+                best[window] = (score, index, frame)
+        bar.close()
+    except (RuntimeError, OSError) as exc:
+        raise DataError(f"{video}: decoding failed ({_ffmpeg_reason(exc)})") from None
+    finally:
+        reader.close()
+    if len(best) < MIN_VIEWS:
+        raise DataError(f"{video}: too few decodable frames ({len(best)}); SfM needs at least {MIN_VIEWS}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    frames = []
+    for k, window in enumerate(sorted(best)):
+        score, index, rgb = best[window]
+        name = f"frame_{k + 1:05d}.png"
+        _write_png(out_dir / name, rgb)
+        frames.append(Frame(name, str(index), score))
+    return frames
+
+
+def list_photos(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        raise DataError(f"{folder}: no such folder")
+    files = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+                    and not p.name.startswith(".")), key=lambda p: natural_key(p.name))
+    if not files:
+        raise DataError(f"{folder}: no images found (looked for {', '.join(IMAGE_SUFFIXES)})")
+    if len(files) < MIN_VIEWS:
+        raise DataError(f"{folder}: too few images ({len(files)}); SfM needs at least {MIN_VIEWS} views")
+    return files
+
+
+def read_photo(path: Path) -> np.ndarray:
+    """A photo as RGB uint8, turned upright by its EXIF orientation (phones store it so)."""
+    import imageio.v3 as iio
+
+    try:
+        if path.suffix.lower() in (".jpg", ".jpeg"):
+            img = iio.imread(path, rotate=True)
+        else:
+            img = iio.imread(path)
+    except Exception as exc:  # noqa: BLE001 - any decoder failure is a bad input file
+        raise DataError(f"{path}: cannot read the image ({exc})") from None
+    img = np.asarray(img)
+    if img.dtype == np.uint16:
+        img = (img // 257).astype(np.uint8)
+    if img.dtype != np.uint8:
+        raise DataError(f"{path}: unsupported pixel type {img.dtype}")
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=-1)
+    if img.ndim != 3 or img.shape[-1] not in (3, 4):
+        raise DataError(f"{path}: unsupported image shape {img.shape}")
+    return np.ascontiguousarray(img[..., :3])
+
+
+def copy_photos(folder: Path, out_dir: Path, options: FrameOptions, progress: bool = True) -> list[Frame]:
+    """Write every photo of ``folder`` as ``<stem>.png`` (upright, cropped, resized, no EXIF)."""
+    from tqdm import tqdm
+
+    check_crop(options.crop)
+    files = list_photos(folder)
+    stems = [p.stem for p in files]
+    duplicates = sorted({s for s in stems if stems.count(s) > 1})
+    if duplicates:
+        raise DataError(f"{folder}: several images share the name '{duplicates[0]}' "
+                        "(different extensions); rename them")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    frames, sizes = [], {}
+    for path in tqdm(files, desc="reading photos", unit="image", disable=not progress):
+        rgb = prepare_frame(read_photo(path), options)
+        sizes.setdefault(rgb.shape[:2], path.name)
+        name = f"{path.stem}.png"
+        _write_png(out_dir / name, rgb)
+        frames.append(Frame(name, path.name, laplacian_variance(rgb)))
+    if len(sizes) > 1:
+        shown = ", ".join(f"{n} is {w}x{h}" for (h, w), n in sizes.items())
+        raise DataError(f"{folder}: the photos differ in size ({shown}); one scene needs one size "
+                        "(one camera and orientation)")
+    return frames

@@ -1,0 +1,276 @@
+"""Structure from motion with the pycolmap wheel (no colmap binary): features, matching,
+incremental mapping, choice of the largest model, registration check and undistortion.
+
+pycolmap 4.x API. Loop detection in sequential matching needs a vocabulary tree; when the user
+gives none (the stock trees are downloads), one is built from the clip's own SIFT descriptors,
+which is enough to find revisited places within one capture.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from rainyscape.errors import ConfigError, DataError
+
+# Perspective models SfM may fit; undistortion turns each into PINHOLE.
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+MATCHERS = ("sequential", "exhaustive")
+WARN_FRACTION = 0.8  # fewer registered frames than this fraction: warn
+SMALL_SET = 5  # fewer frames than this: keep points seen by two frames only
+
+
+@dataclass
+class SfmOptions:
+    camera_model: str = "SIMPLE_RADIAL"
+    single_camera: bool = True  # one shared camera for all frames (a video, one phone)
+    matcher: str = "sequential"  # sequential (video) or exhaustive (small photo sets)
+    overlap: int = 10  # sequential: frames matched with the next `overlap` (and 2^k further)
+    loop_detection: bool = True  # sequential: also match revisited places
+    vocab_tree: str = ""  # COLMAP vocabulary tree for loop detection (empty: build one)
+    max_features: int = 8192  # SIFT features per image
+    min_registered: float = 0.5  # fail when fewer frames than this fraction register
+    init_min_tri_angle: float = 16.0  # degrees; lower it for narrow baselines (a stereo pair)
+    num_threads: int = -1  # -1: all cores
+    seed: int = 0
+    verbose: bool = False  # show COLMAP's own log
+
+    def validate(self) -> None:
+        if self.camera_model not in CAMERA_MODELS:
+            raise ConfigError(f"camera model '{self.camera_model}' is not one of {', '.join(CAMERA_MODELS)}")
+        if self.matcher not in MATCHERS:
+            raise ConfigError(f"matcher '{self.matcher}' is not one of {', '.join(MATCHERS)}")
+        if self.max_features < 64:
+            raise ConfigError(f"max_features={self.max_features}: use at least 64")
+        if not 0 < self.init_min_tri_angle < 90:
+            raise ConfigError(f"init_min_tri_angle={self.init_min_tri_angle}: degrees in (0, 90)")
+        if not 0 < self.min_registered <= 1:
+            raise ConfigError(f"min_registered={self.min_registered}: a fraction in (0, 1]")
+        if self.vocab_tree and not Path(self.vocab_tree).is_file():
+            raise ConfigError(f"{self.vocab_tree}: no such vocabulary tree file")
+
+
+@dataclass
+class Registration:
+    """How well SfM went: the registration report."""
+
+    total: int  # frames given to SfM
+    registered: list[str]  # names of registered frames, sorted
+    unregistered: list[str]
+    mean_reprojection_error: float  # pixels
+    num_points: int
+    model_sizes: list[int]  # registered frames of every model found, largest first
+
+    @property
+    def fraction(self) -> float:
+        return len(self.registered) / self.total if self.total else 0.0
+
+    def summary(self) -> str:
+        text = (f"registered {len(self.registered)}/{self.total} frames ({100 * self.fraction:.0f} %), "
+                f"{self.num_points} points, mean reprojection error "
+                f"{self.mean_reprojection_error:.2f} px")
+        if len(self.model_sizes) > 1:
+            text += f"; {len(self.model_sizes)} separate models of {self.model_sizes} frames, kept the largest"
+        return text
+
+    def to_json(self) -> dict:
+        return {"total": self.total, "registered": len(self.registered),
+                "fraction": round(self.fraction, 4),
+                "mean_reprojection_error_px": round(self.mean_reprojection_error, 4),
+                "num_points": self.num_points, "model_sizes": self.model_sizes,
+                "unregistered": self.unregistered}
+
+
+@dataclass
+class Stages:
+    """Prints one line per stage with its duration; keeps the timings for the report."""
+
+    count: int
+    progress: bool = True
+    timings: dict[str, float] = field(default_factory=dict)
+    _index: int = 0
+
+    @contextlib.contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        self._index += 1
+        if self.progress:
+            print(f"[{self._index}/{self.count}] {name} ...", file=sys.stderr, flush=True)
+        start = time.perf_counter()
+        yield
+        self.timings[name] = round(time.perf_counter() - start, 3)
+        if self.progress:
+            print(f"      {name}: done in {self.timings[name]:.1f} s", file=sys.stderr, flush=True)
+
+
+@contextlib.contextmanager
+def colmap_log(verbose: bool) -> Iterator[None]:
+    """Silence COLMAP's INFO / WARNING log unless asked for it."""
+    import pycolmap
+
+    before = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 0 if verbose else 3  # failures are reported by us
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = before
+
+
+@contextlib.contextmanager
+def native_stderr_silenced() -> Iterator[None]:
+    """Discard what C++ code writes to file descriptor 2 (Python's own stderr is flushed first)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with open(os.devnull, "w") as devnull:
+        os.dup2(devnull.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
+def extract_features(database: Path, image_dir: Path, names: list[str], opts: SfmOptions) -> None:
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = opts.camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = opts.max_features
+    extraction.num_threads = opts.num_threads
+    mode = pycolmap.CameraMode.SINGLE if opts.single_camera else pycolmap.CameraMode.PER_IMAGE
+    pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=mode,
+                              reader_options=reader, extraction_options=extraction)
+
+
+def build_vocab_tree(database: Path, out_path: Path, seed: int, num_threads: int,
+                     max_descriptors: int = 200_000) -> Path:
+    """A small vocabulary tree from the database's own SIFT descriptors (for loop detection)."""
+    import pycolmap
+
+    with pycolmap.Database.open(database) as db:
+        descs = [db.read_descriptors(im.image_id).to_float().data for im in db.read_all_images()]
+    data = np.concatenate([d for d in descs if len(d)]) if descs else np.zeros((0, 128), np.float32)
+    if len(data) > max_descriptors:
+        data = data[np.random.default_rng(seed).choice(len(data), max_descriptors, replace=False)]
+    index = pycolmap.VisualIndex.create(128, 64)  # SIFT descriptors, 64-d Hamming embedding
+    build = pycolmap.VisualIndex.BuildOptions()
+    # About 100 descriptors per visual word: a vocabulary one capture can support.
+    build.num_visual_words = int(np.clip(len(data) // 100, 64, 16384))
+    build.num_iterations = 20
+    build.num_rounds = 1
+    build.num_threads = num_threads
+    descriptors = pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.SIFT,
+                                                   np.ascontiguousarray(data, np.float32))
+    with native_stderr_silenced():  # faiss warns that a small vocabulary has few points per word
+        index.build(build, descriptors)
+    index.write(out_path)
+    return out_path
+
+
+def match_features(database: Path, work_dir: Path, opts: SfmOptions) -> None:
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = opts.num_threads
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = opts.seed
+    if opts.matcher == "exhaustive":
+        pycolmap.match_exhaustive(database, matching_options=matching,
+                                  verification_options=verification)
+        return
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = opts.overlap
+    pairing.num_threads = opts.num_threads
+    if opts.loop_detection:
+        tree = Path(opts.vocab_tree) if opts.vocab_tree else build_vocab_tree(
+            database, work_dir / "vocab_tree.bin", opts.seed, opts.num_threads)
+        pairing.loop_detection = True
+        pairing.vocab_tree_path = tree
+        pairing.loop_detection_period = max(1, opts.overlap // 2)
+    pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing,
+                              verification_options=verification)
+
+
+def incremental_mapping(database: Path, image_dir: Path, out_dir: Path, opts: SfmOptions,
+                        total: int, progress: bool) -> dict:
+    """Incremental SfM; returns every model found, keyed by its index."""
+    import pycolmap
+    from tqdm import tqdm
+
+    pipeline = pycolmap.IncrementalPipelineOptions()
+    pipeline.num_threads = opts.num_threads
+    pipeline.random_seed = opts.seed
+    pipeline.min_model_size = min(pipeline.min_model_size, max(2, total // 2))
+    pipeline.extract_colors = True
+    pipeline.mapper.init_min_tri_angle = opts.init_min_tri_angle
+    # In a handful of photos most points are seen twice only; COLMAP's default drops those.
+    pipeline.triangulation.ignore_two_view_tracks = total >= SMALL_SET
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bar = tqdm(total=total, desc="registering", unit="frame", disable=not progress)
+    bar.update(2)  # the initial pair; the callback fires for each later frame
+    try:
+        models = pycolmap.incremental_mapping(database, image_dir, out_dir, pipeline,
+                                              next_image_callback=lambda: bar.update(1))
+    finally:
+        bar.close()
+    return dict(models)
+
+
+def largest_model(models: dict):
+    """The model with the most registered frames (ties: the most points), with its index."""
+    if not models:
+        return None, None
+    key = max(models, key=lambda k: (models[k].num_reg_images(), models[k].num_points3D()))
+    return key, models[key]
+
+
+def registration_report(model, names: list[str], models: dict) -> Registration:
+    registered = sorted(model.images[i].name for i in model.reg_image_ids()) if model else []
+    done = set(registered)
+    sizes = sorted((m.num_reg_images() for m in models.values()), reverse=True)
+    return Registration(
+        total=len(names), registered=registered, unregistered=[n for n in names if n not in done],
+        mean_reprojection_error=float(model.compute_mean_reprojection_error()) if model else float("nan"),
+        num_points=int(model.num_points3D()) if model else 0, model_sizes=sizes)
+
+
+def check_registration(report: Registration, opts: SfmOptions, source: Path) -> str | None:
+    """Raise when too few frames registered; return a warning line below 80 %."""
+    need = max(2, math.ceil(opts.min_registered * report.total))
+    if len(report.registered) == 0:
+        raise DataError(
+            f"{source}: SfM registered no frames. The camera may be static (no parallax between "
+            "frames), or the frames lack texture or overlap; move the camera sideways around the "
+            "scene, or give more frames (--num-frames)")
+    if len(report.registered) < need:
+        raise DataError(
+            f"{source}: SfM registered only {len(report.registered)} of {report.total} frames "
+            f"(at least {need} needed, --min-registered {opts.min_registered}); "
+            "try more frames, more overlap (--overlap) or --matcher exhaustive")
+    if report.fraction < WARN_FRACTION:
+        return (f"warning: only {100 * report.fraction:.0f} % of the frames registered "
+                f"({len(report.registered)}/{report.total}); unregistered: "
+                f"{', '.join(report.unregistered[:8])}{' ...' if len(report.unregistered) > 8 else ''}")
+    return None
+
+
+def undistort(model_dir: Path, image_dir: Path, scene_dir: Path, num_threads: int) -> None:
+    """Pinhole images into ``scene/images`` and their model into ``scene/sparse/0``."""
+    import pycolmap
+
+    tmp = scene_dir / "colmap" / "undistorted"
+    shutil.rmtree(tmp, ignore_errors=True)
+    pycolmap.undistort_images(tmp, model_dir, image_dir, output_type="COLMAP", num_threads=num_threads)
+    (scene_dir / "sparse").mkdir(parents=True, exist_ok=True)
+    shutil.move(str(tmp / "images"), str(scene_dir / "images"))
+    shutil.move(str(tmp / "sparse"), str(scene_dir / "sparse" / "0"))
+    shutil.rmtree(tmp)  # the MVS scaffolding (stereo/, scripts) is not needed

@@ -1,0 +1,172 @@
+"""The rain prediction module E_phi of the paper (III-B): R_i = E(s, v_i, p_i) >= 0.
+
+Rain embedding of view i: a learnable scene state ``s`` shared by all views, a learnable
+view state ``v_i`` and the fixed camera vector ``p_i`` (the normalised camera-to-world
+4x4, flattened). A 3-layer MLP maps them to a coarse latent rain map of the whole view
+(image size / ``upscale``); a 6-layer CNN with sub-pixel (PixelShuffle) super-resolution
+turns it into the rain layer at image resolution, so predicted rain is tied to pixels.
+
+Windowed evaluation: only the rows and columns of the latent map that the requested
+window needs (its receptive field) are produced, by gathering those rows of the MLP's
+last layer, and the convolutions run "valid" on that region with everything outside the
+image zeroed after each layer. That reproduces the zero padding of the full-view network
+exactly, so a window equals the same window cut from the full-view map, and a 64 x 64
+patch costs about a 64 x 64 forward whatever the image size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from rainyscape.cameras import Cameras, Window
+from rainyscape.components import ParamGroup, RainHead
+from rainyscape.errors import ConfigError
+from rainyscape.scene import SceneData
+
+CAMERA_DIM = 16
+
+
+def camera_vectors(cameras: Cameras) -> Tensor:
+    """p_i: camera-to-world 4x4 with translations divided by the largest camera distance from
+    the origin (so every entry is O(1) whatever the scene scale), flattened to (N, 16)."""
+    c2w = cameras.c2w.detach().clone().float()
+    radius = c2w[:, :3, 3].norm(dim=-1).max().clamp_min(1e-8)
+    c2w[:, :3, 3] /= radius
+    return c2w.reshape(len(cameras), CAMERA_DIM)
+
+
+def _inside(start_y: Tensor, start_x: Tensor, ly: int, lx: int, height: int, width: int) -> Tensor:
+    """(B, 1, ly, lx) mask of region positions that lie inside a height x width grid."""
+    ys = start_y[:, None] + torch.arange(ly, device=start_y.device)
+    xs = start_x[:, None] + torch.arange(lx, device=start_x.device)
+    in_y = (ys >= 0) & (ys < height)
+    in_x = (xs >= 0) & (xs < width)
+    return (in_y[:, :, None] & in_x[:, None, :])[:, None]
+
+
+class RainPredictor(RainHead):
+    """Rain head: scene / view / camera embeddings -> MLP latent map -> CNN + PixelShuffle."""
+
+    description = "rain prediction module: latents + MLP + sub-pixel CNN (RainyScape)"
+
+    @dataclass
+    class Config:
+        scene_dim: int = 128  # s
+        view_dim: int = 64  # v_i
+        mlp_width: int = 128
+        latent_channels: int = 1  # channels of the coarse latent rain map
+        upscale: int = 2  # latent map at image size / upscale; PixelShuffle restores it
+        lowres_channels: tuple[int, ...] = (512, 256, 128, 128)  # 3x3 convs at latent resolution
+        highres_channels: int = 64  # channels after PixelShuffle
+        max_rain: float = 1.0  # R = m tanh(relu(x) / m) keeps R in [0, m]; 0: plain ReLU (unbounded)
+        mlp_lr: float = 1e-3
+        cnn_lr: float = 1e-4
+        betas: tuple[float, float] = (0.5, 0.999)
+        latent_std: float = 1.0  # s and v_i start as N(0, latent_std^2)
+
+    def __init__(self, config: "RainPredictor.Config | None", scene: SceneData):
+        super().__init__()
+        self.config = c = config or self.Config()
+        if c.upscale < 1:
+            raise ConfigError(f"rain_head.upscale must be at least 1, got {c.upscale}")
+        if not c.lowres_channels or min(c.lowres_channels) < 1:
+            raise ConfigError("rain_head.lowres_channels must list at least one positive width")
+        if c.max_rain < 0:
+            raise ConfigError(f"rain_head.max_rain must be >= 0, got {c.max_rain}")
+        self.height, self.width = scene.height, scene.width
+        self.latent_h = -(-self.height // c.upscale)
+        self.latent_w = -(-self.width // c.upscale)
+
+        n = scene.num_images
+        self.scene_state = nn.Parameter(torch.randn(c.scene_dim) * c.latent_std)
+        self.view_states = nn.Parameter(torch.randn(n, c.view_dim) * c.latent_std)
+        self.register_buffer("camera_vectors", camera_vectors(scene.cameras), persistent=False)
+
+        # MLP: (s, v_i) and p_i branches summed, a hidden layer, then the latent map.
+        self.embed_state = nn.Linear(c.scene_dim + c.view_dim, c.mlp_width)
+        self.embed_camera = nn.Linear(CAMERA_DIM, c.mlp_width)
+        self.hidden = nn.Linear(c.mlp_width, c.mlp_width)
+        self.to_map = nn.Linear(c.mlp_width, c.latent_channels * self.latent_h * self.latent_w)
+
+        widths = [c.latent_channels, *c.lowres_channels]
+        self.lowres = nn.ModuleList(nn.Conv2d(a, b, 3) for a, b in zip(widths[:-1], widths[1:]))
+        self.to_subpixels = nn.Conv2d(widths[-1], c.highres_channels * c.upscale ** 2, 3)
+        self.to_rgb = nn.Conv2d(c.highres_channels, 3, 3)
+        self.lowres_layers = len(self.lowres) + 1  # valid 3x3 convs at latent resolution
+
+    # ------------------------------------------------------------------ interface
+
+    def latents(self) -> list[nn.Parameter]:
+        return [self.scene_state, self.view_states]
+
+    def param_groups(self) -> list[ParamGroup]:
+        c = self.config
+        mlp = [*self.embed_state.parameters(), *self.embed_camera.parameters(),
+               *self.hidden.parameters(), *self.to_map.parameters()]
+        cnn = [*self.lowres.parameters(), *self.to_subpixels.parameters(), *self.to_rgb.parameters()]
+        return [ParamGroup("rain_mlp", mlp, lr=c.mlp_lr, betas=tuple(c.betas)),
+                ParamGroup("rain_cnn", cnn, lr=c.cnn_lr, betas=tuple(c.betas))]
+
+    def forward(self, view_ids: Tensor, window: Window) -> Tensor:
+        """Rain (B, 3, window.height, window.width) >= 0 of ``window`` in each view."""
+        dev = self.view_states.device
+        view_ids = view_ids.to(dev)
+        y0, x0 = window.y0.to(dev), window.x0.to(dev)
+        f = self.config.upscale
+        # Low-res rows feeding full-res rows [y0 - 1, y0 + h] (the last conv's 3x3 support).
+        ay, ax = torch.div(y0 - 1, f, rounding_mode="floor"), torch.div(x0 - 1, f, rounding_mode="floor")
+        ly, lx = (window.height + f) // f + 1, (window.width + f) // f + 1
+        m = self.lowres_layers
+        x = self.latent_region(view_ids, ay - m, ax - m, ly + 2 * m, lx + 2 * m)
+        for i, conv in enumerate(self.lowres):
+            x = F.relu(conv(x))
+            k = i + 1
+            x = x * _inside(ay - m + k, ax - m + k, ly + 2 * (m - k), lx + 2 * (m - k),
+                            self.latent_h, self.latent_w)
+        x = F.pixel_shuffle(F.relu(self.to_subpixels(x)), f)  # region starts at (f ay, f ax)
+        x = x * _inside(f * ay, f * ax, f * ly, f * lx, self.height, self.width)
+        x = self.to_rgb(x)  # region starts at (f ay + 1, f ax + 1)
+        x = _crop(x, y0 - f * ay - 1, x0 - f * ax - 1, window.height, window.width)
+        return self.bound(x)
+
+    def bound(self, x: Tensor) -> Tensor:
+        """Non-negative rain, softly bounded by ``max_rain`` (the AGR term rewards strong rain
+        gradients without limit, so an unbounded head can grow without end)."""
+        x = F.relu(x)
+        m = self.config.max_rain
+        return m * torch.tanh(x / m) if m > 0 else x
+
+    # ------------------------------------------------------------------ internals
+
+    def embedding(self, view_ids: Tensor) -> Tensor:
+        """The MLP's hidden code (B, mlp_width) of each view."""
+        s = self.scene_state.expand(len(view_ids), -1)
+        state = torch.cat([s, self.view_states[view_ids]], -1)
+        h = F.relu(self.embed_state(state) + self.embed_camera(self.camera_vectors[view_ids]))
+        return torch.tanh(self.hidden(h))
+
+    def latent_region(self, view_ids: Tensor, start_y: Tensor, start_x: Tensor, ly: int, lx: int) -> Tensor:
+        """Rows [start_y, start_y + ly) x cols [start_x, start_x + lx) of each view's latent map
+        (B, C, ly, lx), zero outside the map, computing only those outputs of the last layer."""
+        code = self.embedding(view_ids)
+        ys = start_y[:, None] + torch.arange(ly, device=code.device)
+        xs = start_x[:, None] + torch.arange(lx, device=code.device)
+        pos = ys.clamp(0, self.latent_h - 1)[:, :, None] * self.latent_w + xs.clamp(0, self.latent_w - 1)[:, None, :]
+        chan = torch.arange(self.config.latent_channels, device=code.device) * (self.latent_h * self.latent_w)
+        index = chan[None, :, None, None] + pos[:, None]  # (B, C, ly, lx)
+        weight = F.embedding(index, self.to_map.weight)  # (B, C, ly, lx, width)
+        bias = self.to_map.bias[index]
+        latent = F.relu(torch.einsum("bcyxk,bk->bcyx", weight, code) + bias)
+        return latent * _inside(start_y, start_x, ly, lx, self.latent_h, self.latent_w)
+
+
+def _crop(x: Tensor, off_y: Tensor, off_x: Tensor, h: int, w: int) -> Tensor:
+    """Per-image crop of (B, C, H', W') at offsets (B,) to (B, C, h, w)."""
+    rows = off_y[:, None] + torch.arange(h, device=x.device)
+    cols = off_x[:, None] + torch.arange(w, device=x.device)
+    batch = torch.arange(x.shape[0], device=x.device)[:, None, None]
+    return x.permute(0, 2, 3, 1)[batch, rows[:, :, None], cols[:, None, :]].permute(0, 3, 1, 2)

@@ -1,0 +1,49 @@
+"""The embedded demo scene: generated once by the simulator and cached.
+
+The cache lives in ``$RAINYSCAPE_CACHE`` (or ``~/.cache/rainyscape``) under a folder named
+by the simulator version, so a simulator change regenerates it. Generation writes into a
+temporary folder that is renamed into place only when complete: an interrupted run never
+leaves a broken cache.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+from rainyscape.synth.simulate import SIM_VERSION, generate
+
+DEMO_PRESET = "demo"
+
+
+def cache_root() -> Path:
+    env = os.environ.get("RAINYSCAPE_CACHE", "").strip()
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "rainyscape"
+
+
+def demo_path() -> Path:
+    return cache_root() / f"demo-scene-v{SIM_VERSION}"
+
+
+def ensure_demo_scene(verbose: bool = True) -> Path:
+    """Path of the cached demo scene, generating it first if needed."""
+    final = demo_path()
+    if (final / "scene.json").is_file():
+        return final
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}-", dir=final.parent))
+    try:
+        if verbose:
+            print(f"generating the demo scene into {final} (once) ...", flush=True)
+        generate(tmp, DEMO_PRESET, force=True)
+        if final.exists():  # a stale, incomplete folder (or another process won the race)
+            if (final / "scene.json").is_file():
+                return final
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return final

@@ -1,0 +1,223 @@
+"""`generate`: build a scene, place cameras, render clean views and rain, write the layout."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rainyscape.errors import ConfigError, DataError
+from rainyscape.eval.metrics import psnr, ssim
+from rainyscape.synth import layout
+from rainyscape.synth.presets import PRESETS
+from rainyscape.synth.rain import RainConfig, make_drop_field, render_rain
+from rainyscape.synth.render import SceneRenderer
+from rainyscape.synth.rig import make_rig
+from rainyscape.synth.scenes import build_scene
+
+# Bump when the simulator's output changes: cached demo scenes are keyed by it.
+SIM_VERSION = "1"
+MODES = ("static", "dynamic")
+TRAJECTORIES = ("sphere", "video")
+
+
+def rain_config(preset_rain: dict, overrides: dict) -> RainConfig:
+    valid = RainConfig.keys()
+    unknown = [k for k in overrides if k not in valid]
+    if unknown:
+        raise ConfigError(f"unknown rain option '{unknown[0]}'; rain options are {', '.join(valid)}")
+    cfg = RainConfig(**preset_rain)
+    values = {}
+    for key, value in overrides.items():
+        try:
+            values[key] = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"rain option {key}: cannot read '{value}' as a number") from None
+        if not np.isfinite(values[key]):
+            raise ConfigError(f"rain option {key}: {value} is not finite")
+    return replace(cfg, **values)
+
+
+def rain_strength(rainy: np.ndarray, clean: np.ndarray) -> tuple[float, float]:
+    """PSNR (dB) and SSIM of a rainy uint8 view against its clean version."""
+    a = torch.from_numpy(rainy).permute(2, 0, 1)[None].float() / 255.0
+    b = torch.from_numpy(clean).permute(2, 0, 1)[None].float() / 255.0
+    padding = "valid" if min(rainy.shape[:2]) >= 11 else "same"  # tiny test images
+    return float(psnr(a, b)), float(ssim(a, b, padding=padding))
+
+
+def drop_box(positions: np.ndarray, look_at: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The rain volume: every camera and the scene around the look-at point, ground to above
+    the highest camera."""
+    reach = 0.8 * radius
+    lo = np.minimum(positions.min(0), look_at - reach) - 1.5
+    hi = np.maximum(positions.max(0), look_at + reach) + 1.5
+    lo[1], hi[1] = 0.0, positions[:, 1].max() + 3.0
+    return lo, hi
+
+
+def _check_out_dir(out: Path, force: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise DataError(f"{out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise DataError(f"{out}: folder exists and is not empty; choose another out= or pass "
+                        "force=true to write into it")
+
+
+@dataclass(frozen=True)
+class Job:
+    """Everything that determines a simulation (workers rebuild it from this, deterministically)."""
+
+    preset: str
+    rows: int
+    cols: int
+    width: int
+    height: int
+    mode: str
+    trajectory: str
+    seed: int
+    rain: RainConfig
+    out: str
+
+
+class Simulation:
+    """The scene, cameras and drop field of a job; renders and writes one view at a time."""
+
+    def __init__(self, job: Job):
+        self.job = job
+        p = PRESETS[job.preset]
+        self.spec = build_scene(p.scene, job.seed)
+        self.rig = make_rig(self.spec.rig, job.rows, job.cols, job.width, job.height, job.trajectory)
+        self.cameras = self.rig.cameras()
+        self.renderer = SceneRenderer(self.spec)
+        self.look_at = np.asarray(self.spec.rig.look_at, float)
+        self.box = drop_box(self.rig.positions, self.look_at, self.spec.rig.radius)
+        self.drops = make_drop_field(*self.box, job.rain, job.seed + 1000)
+        sky_mean = 0.5 * (np.asarray(self.spec.sky_zenith) + np.asarray(self.spec.sky_horizon))
+        self.drop_rgb = np.clip(job.rain.brightness * sky_mean, 0, 1)
+        n = len(self.cameras)
+        self.names = layout.view_names(n)
+        self.times = [k / job.rain.fps if job.mode == "dynamic" else 0.0 for k in range(n)]
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def render_view(self, k: int) -> dict:
+        """Render view ``k``, write its files, return its rainy-vs-clean metrics."""
+        view = self.renderer.render(self.cameras, k)
+        focus = float(np.linalg.norm(self.rig.positions[k] - self.look_at))
+        rain_layer = render_rain(self.drops, self.cameras, k, view.depth, self.times[k], self.job.rain,
+                                 self.drop_rgb, focus, self.rig.focal_mm / 1000.0)
+        clean8 = layout.to_uint8(view.rgb)
+        rainy8 = layout.to_uint8(rain_layer.composite(view.rgb))
+        layout.write_view(Path(self.job.out), self.names[k], rainy8, clean8, view.depth,
+                          rain_layer.alpha, rain_layer.color)
+        p_db, s = rain_strength(rainy8, clean8)
+        return {"name": f"{self.names[k]}.png", "psnr": round(p_db, 3), "ssim": round(s, 4),
+                "time_s": self.times[k]}
+
+
+_WORKER: Simulation | None = None
+
+
+def _init_worker(job: Job) -> None:
+    global _WORKER
+    torch.set_num_threads(1)
+    _WORKER = Simulation(job)
+
+
+def _render_in_worker(k: int) -> dict:
+    return _WORKER.render_view(k)
+
+
+def auto_workers(views: int, width: int, height: int) -> int:
+    """One process for small jobs (start-up costs more than it saves), else every core."""
+    if views * width * height < 4_000_000:
+        return 1
+    return max(1, min(os.cpu_count() or 1, views, 8))
+
+
+def _render_all(sim: Simulation, workers: int, progress) -> list[dict]:
+    n = len(sim)
+    if workers <= 1:
+        out = []
+        for k in range(n):
+            out.append(sim.render_view(k))
+            if progress is not None:
+                progress(k + 1, n)
+        return out
+    ctx = multiprocessing.get_context("spawn")  # no fork after torch / OpenMP start
+    results: dict[int, dict] = {}
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                             initargs=(sim.job,)) as pool:
+        futures = {pool.submit(_render_in_worker, k): k for k in range(n)}
+        for fut in as_completed(futures):
+            results[futures[fut]] = fut.result()
+            if progress is not None:
+                progress(len(results), n)
+    return [results[k] for k in range(n)]
+
+
+def generate(out_dir: str | Path, preset: str = "demo", rows: int | None = None, cols: int | None = None,
+             width: int | None = None, height: int | None = None, mode: str = "static",
+             trajectory: str = "sphere", seed: int = 0, force: bool = False,
+             progress=None, workers: int | None = None, **rain_overrides) -> Path:
+    """Simulate a rainy multi-view scene into ``out_dir`` (the Maya layout; docs/data.md).
+
+    ``rain_overrides`` are :class:`~rainyscape.synth.rain.RainConfig` fields (density,
+    wind_deg, ...). ``progress`` is called as progress(done, total) after each view.
+    ``workers``: processes rendering views (None: one for small jobs, else every core).
+    Returns the folder. Refuses a non-empty folder unless ``force``.
+    """
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset '{preset}'; presets are {', '.join(PRESETS)}")
+    if mode not in MODES:
+        raise ConfigError(f"mode must be one of {', '.join(MODES)}, got '{mode}'")
+    if trajectory not in TRAJECTORIES:
+        raise ConfigError(f"trajectory must be one of {', '.join(TRAJECTORIES)}, got '{trajectory}'")
+    p = PRESETS[preset]
+    rows, cols = rows or p.rows, cols or p.cols
+    width = width or p.width
+    height = height or (p.height if width == p.width else width)
+    for key, value in (("rows", rows), ("cols", cols), ("width", width), ("height", height)):
+        if int(value) < 1:
+            raise ConfigError(f"{key} must be at least 1, got {value}")
+    rain = rain_config(p.rain, rain_overrides)
+    out = Path(out_dir)
+    _check_out_dir(out, force)
+    started = time.perf_counter()
+
+    job = Job(preset, int(rows), int(cols), int(width), int(height), mode, trajectory, int(seed), rain, str(out))
+    sim = Simulation(job)
+    layout.make_dirs(out)
+    n = len(sim)
+    workers = auto_workers(n, width, height) if workers is None else max(1, int(workers))
+    per_view = _render_all(sim, workers, progress)
+    rig = sim.rig
+    layout.write_cameras_csv(out / "cameras.csv", rig.positions, rig.rotations, np.full(n, rig.focal_mm),
+                             np.full(n, rig.h_aperture_mm), np.full(n, rig.v_aperture_mm))
+    lo, hi = sim.box
+    info = {
+        "simulator_version": SIM_VERSION, "preset": preset, "scene": p.scene, "description": p.description,
+        "mode": mode, "trajectory": trajectory, "rows": rows, "cols": cols, "width": width,
+        "height": height, "seed": seed, "units": "metres, Y up (Maya)",
+        "rain": rain.to_dict(), "drops": len(sim.drops), "drop_box": [lo.tolist(), hi.tolist()],
+        "look_at": sim.look_at.tolist(), "sun_dir": list(sim.spec.sun_dir),
+        "depth": {"folder": layout.DEPTH_DIR, "key": layout.DEPTH_KEY, "kind": "z-depth along the optical axis",
+                  "units": "world", "sky": "inf"},
+        "rain_layer": {"folder": layout.RAIN_DIR, "format": "RGBA png: RGB rain colour C, A coverage; "
+                       "rainy = clean * (1 - A) + C * A"},
+        "metrics": {"psnr_rainy_vs_clean": round(float(np.mean([v["psnr"] for v in per_view])), 3),
+                    "ssim_rainy_vs_clean": round(float(np.mean([v["ssim"] for v in per_view])), 4),
+                    "per_view": per_view},
+        "workers": workers,
+        "seconds": round(time.perf_counter() - started, 2),
+    }
+    layout.write_scene_json(out / "scene.json", info)  # written last: marks a complete scene
+    return out

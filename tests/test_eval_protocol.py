@@ -1,0 +1,82 @@
+"""The evaluation protocol on a pipeline whose every metric is known in advance."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from rainyscape.eval.evaluate import (angle_difference_deg, correlation, evaluate_pipeline, mean_angle_deg,
+                                      write_metrics)
+from rainyscape.eval.metrics import psnr, ssim
+from test_eval_fakes import OFFSET, make_pipeline
+
+
+def test_every_field_of_the_protocol(tmp_path):
+    pipe = make_pipeline()
+    (tmp_path / "config.yml").write_text("method: fake\n")
+    m = evaluate_pipeline(pipe, tmp_path)
+    s = m["summary"]
+    known = -10 * math.log10(OFFSET ** 2)
+    assert s["train_psnr"] == pytest.approx(known, abs=0.05)
+    assert s["heldout_psnr"] == pytest.approx(known, abs=0.05)
+    scene = pipe.scene
+    rainy = scene.images[scene.train_indices].permute(0, 3, 1, 2).float() / 255
+    clean = scene.clean_images[scene.train_indices].permute(0, 3, 1, 2).float() / 255
+    floor = [float(psnr(r, c)) for r, c in zip(rainy, clean)]
+    assert s["rainy_input_psnr"] == pytest.approx(sum(floor) / len(floor), abs=1e-4)
+    assert s["rainy_input_ssim"] == pytest.approx(float(ssim(rainy, clean, reduction="none").mean()), abs=1e-5)
+    # the "keep" post-process returns the rainy input: its row equals the floor
+    assert s["train_keep_psnr"] == pytest.approx(s["rainy_input_psnr"], abs=1e-6)
+    assert "heldout_keep_psnr" not in s
+    assert s["train_psnr_vs_rainy"] < s["train_psnr"]
+    # the rain head predicts the true layer: same angle, perfect correlation
+    assert s["rain_correlation"] == pytest.approx(1.0, abs=1e-6)
+    assert s["rain_angle_error_deg"] == 0.0
+    assert s["rain_angle_deg"] == pytest.approx(s["rain_angle_true_deg"])
+    assert 0 <= s["rain_angle_deg"] < 180
+    # LPIPS is either measured or reported unavailable with a reason, never estimated
+    if m["lpips"]["available"]:
+        assert 0 <= s["train_lpips"] < 1
+    else:
+        assert m["lpips"]["reason"] and not any(k.endswith("lpips") for k in s)
+    views = {r["view"]: r for r in m["per_view"]}
+    assert len(views) == scene.num_images
+    assert views["003.png"]["split"] == "heldout" and "rain_angle_deg" not in views["003.png"]
+    assert m["postprocess"] == ["keep"] and m["has_clean"] and m["has_rain_head"]
+    strips = sorted(p.name for p in (tmp_path / "renders" / "strips").glob("*.png"))
+    assert strips == ["000.png", "001.png", "002.png"]
+
+
+def test_without_a_rain_head_or_clean_images():
+    pipe = make_pipeline(with_rain=False)
+    s = evaluate_pipeline(pipe)["summary"]
+    assert "rain_angle_deg" not in s and "rain_correlation" not in s
+    assert "rain_angle_true_deg" in s  # the true layer's angle is known all the same
+    pipe.scene.clean_images = None
+    pipe.scene.rain_layers = None
+    m = evaluate_pipeline(pipe)
+    assert set(m["summary"]) == {"train_psnr_vs_rainy", "heldout_psnr_vs_rainy"}
+    assert not m["has_clean"]
+
+
+def test_write_metrics_writes_json_and_report(tmp_path):
+    pipe = make_pipeline()
+    (tmp_path / "config.yml").write_text("method: fake\n")
+    write_metrics(tmp_path, evaluate_pipeline(pipe, tmp_path))
+    assert json.loads((tmp_path / "metrics.json").read_text())["summary"]["train_psnr"] > 25
+    assert (tmp_path / "report.html").is_file()
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_angle_and_correlation_helpers():
+    assert angle_difference_deg(5, 175) == pytest.approx(10)
+    assert angle_difference_deg(90, 0) == pytest.approx(90)
+    assert mean_angle_deg([178, 4]) == pytest.approx(1.0, abs=1e-6)
+    assert mean_angle_deg([]) is None
+    a = torch.rand(3, 8, 8, generator=torch.Generator().manual_seed(0))
+    assert correlation(a, 2 * a + 1) == pytest.approx(1.0)
+    assert correlation(a, -a) == pytest.approx(-1.0)
+    assert correlation(a, torch.ones_like(a)) is None

@@ -1,0 +1,79 @@
+"""rs-export pieces: marching-cubes meshes that enclose a volume, cameras back in the input frame."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from rainyscape.eval.export import GL_FLIP, export_mesh, grid_points, original_c2w, transforms_json
+from rainyscape.scene import apply_normalization
+from test_eval_fakes import make_pipeline
+
+HALF = torch.tensor([0.4, 0.2, 0.3])  # a box of 0.8 x 0.4 x 0.6 centred at the origin
+
+
+def box_density(points: torch.Tensor) -> torch.Tensor:
+    return (points.abs() <= HALF).all(-1).float() * 100.0
+
+
+@pytest.mark.parametrize("fmt", ["ply", "glb"])
+def test_box_density_meshes_to_a_closed_surface(tmp_path, fmt):
+    pipe = make_pipeline()
+    pipe.field.density = box_density
+    pipe.scene.scale = 2.0  # the mesh must come back in the input frame: half the size
+    info = export_mesh(pipe, tmp_path / f"mesh.{fmt}", resolution=48)
+    mesh = trimesh.load(tmp_path / f"mesh.{fmt}", force="mesh")
+    assert info["watertight"] and mesh.is_watertight
+    expected = float(torch.prod(2 * HALF)) / 2.0 ** 3
+    assert mesh.volume > 0
+    assert mesh.volume == pytest.approx(expected, rel=0.35)  # within a voxel of the true faces
+    np.testing.assert_allclose(mesh.bounds, np.stack([-HALF.numpy(), HALF.numpy()]) / 2, atol=0.05)
+
+
+def test_density_reaching_the_box_still_closes(tmp_path):
+    pipe = make_pipeline()
+    pipe.field.density = lambda p: (p[:, 1] < 0).float() * 100.0  # a half space: fills the box floor
+    export_mesh(pipe, tmp_path / "ground.ply", resolution=24)
+    mesh = trimesh.load(tmp_path / "ground.ply", force="mesh")
+    assert mesh.is_watertight and mesh.volume > 0
+
+
+def test_no_surface_is_a_clear_error(tmp_path):
+    from rainyscape.errors import ConfigError
+
+    pipe = make_pipeline()
+    pipe.field.density = lambda p: torch.zeros(len(p))
+    with pytest.raises(ConfigError, match="no surface"):
+        export_mesh(pipe, tmp_path / "m.ply", resolution=16)
+    del pipe.field.density
+    with pytest.raises(ConfigError, match="has no density"):
+        export_mesh(pipe, tmp_path / "m.ply", resolution=16)
+
+
+def test_grid_points_cover_the_box_with_equal_spacing():
+    pts, shape, spacing = grid_points(torch.tensor([0.0, 0, 0]), torch.tensor([2.0, 1, 0.5]), 21)
+    assert shape == (21, 11, 6) and pts.shape == (21 * 11 * 6, 3)
+    assert float(spacing[0]) == pytest.approx(0.1)
+    assert torch.allclose(pts.max(0).values, torch.tensor([2.0, 1.0, 0.5]), atol=1e-5)
+
+
+def test_transforms_json_puts_cameras_back_in_the_input_frame(tiny_scene, tiny_scene_dir):
+    scene = tiny_scene
+    names = [f"images/{n}" for n in scene.image_names]
+    content = json.loads(json.dumps(transforms_json(scene, names)))
+    assert content["w"] == scene.width and content["fl_x"] == pytest.approx(float(scene.cameras.fx[0]))
+    gl = torch.tensor([f["transform_matrix"] for f in content["frames"]], dtype=torch.float64)
+    cv = gl @ torch.from_numpy(GL_FLIP)
+    # re-normalising the exported cameras gives the scene's cameras back
+    again = apply_normalization(cv.float(), scene.transform, scene.scale)
+    assert torch.allclose(again, scene.cameras.c2w, atol=1e-4)
+    # and their centres are the positions of the input's cameras.csv (Maya world units)
+    with open(tiny_scene_dir / "cameras.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    csv_pos = np.array([[float(r["Position X"]), float(r["Position Y"]), float(r["Position Z"])] for r in rows])
+    np.testing.assert_allclose(original_c2w(scene)[:, :3, 3], csv_pos, atol=1e-3)

@@ -1,0 +1,145 @@
+"""The rain losses on tiny tensors (hand computations) and the AGR's directional behaviour."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from rainyscape.components import LossContext, RenderOutput
+from rainyscape.errors import ConfigError
+from rainyscape.losses.agr import AdaptiveGradientRotation, agr_loss, mean_abs_derivative
+from rainyscape.losses.image_ops import directional_derivative, image_gradients
+from rainyscape.losses.rain_losses import Likelihood, Reconstruction, TotalVariation
+from rainyscape.rain.streaks import streak_layer, textured_background
+
+
+def _ctx(rendered, target, rain, view_ids=(0,)):
+    return LossContext(rendered, target, rain, RenderOutput(rgb=rendered),
+                       torch.tensor(view_ids), step=0, phase="joint")
+
+
+def _tiny():
+    target = torch.tensor([[[[3.0, 1.0], [4.0, 2.0]]]])
+    rendered = torch.tensor([[[[1.0, 1.0], [1.0, 1.0]]]])
+    rain = torch.tensor([[[[1.0, 1.0], [1.0, 1.0]]]])
+    return target, rendered, rain  # residual I - B - R = [[1, -1], [2, 0]]
+
+
+def test_reconstruction_by_hand():
+    target, rendered, rain = _tiny()
+    assert float(Reconstruction()(_ctx(rendered, target, rain))) == pytest.approx((1 + 1 + 4 + 0) / 4)
+
+
+def test_likelihood_by_hand_and_variance_detached():
+    target, rendered, rain = _tiny()
+    rendered.requires_grad_(True)
+    loss = Likelihood()(_ctx(rendered, target, rain))
+    # mean(r) = 0.5, mean(r^2) = 1.5, population variance 1.25
+    assert float(loss.detach()) == pytest.approx(1.5 / (1.25 + 1e-6))
+    loss.backward()
+    # Only the numerator carries gradient: d/dB mean(r^2) / var = -2 r / (n var)
+    expected = -2 * torch.tensor([[1.0, -1.0], [2.0, 0.0]]) / (4 * 1.25)
+    assert torch.allclose(rendered.grad[0, 0], expected, atol=1e-5)
+
+
+def test_rain_counts_as_zero_without_a_rain_head():
+    target, rendered, _ = _tiny()
+    # residual I - B = [[2, 0], [3, 1]]
+    assert float(Reconstruction()(_ctx(rendered, target, None))) == pytest.approx((4 + 0 + 9 + 1) / 4)
+
+
+def test_total_variation_by_hand():
+    b = torch.tensor([[[[0.0, 1.0], [3.0, 3.0]]]])
+    # |dx|: 1 + 0, |dy|: 3 + 2, over 4 elements
+    assert float(TotalVariation()(_ctx(b, b, None))) == pytest.approx(6 / 4)
+
+
+def test_directional_derivative_of_a_ramp():
+    ramp = (torch.arange(5.0) * 0.1).expand(1, 1, 5, 5)  # +0.1 per column
+    for kernel in ("scharr", "sobel"):
+        gx, gy = image_gradients(ramp, kernel)
+        assert torch.allclose(gx, torch.full_like(gx, 0.8)) and gy.abs().max() < 1e-6
+        d = directional_derivative(ramp, torch.tensor([math.pi / 3]), kernel)
+        assert torch.allclose(d, torch.full_like(d, 0.1 * math.cos(math.pi / 3)), atol=1e-6)
+    with pytest.raises(ValueError):
+        image_gradients(ramp, "prewitt")
+
+
+def test_agr_value_by_hand():
+    cols = torch.arange(3.0)
+    rain = (0.1 * cols).expand(1, 3, 3, 3)  # derivative 0.1 along x, 0 along y
+    rendered = (0.2 * cols).expand(1, 3, 3, 3)  # 0.2 along x
+    target = rain + rendered + (0.3 * cols[:, None]).expand(1, 3, 3, 3)  # I - R: 0.2 along x, 0.3 along y
+    valid = torch.tensor([[True]])
+    # theta = 0: along = |D_y R| = 0, across = |D_x R| = 0.1, scene = |D_x B| + |D_x (I - R)| = 0.4
+    loss = agr_loss(rendered, target, rain, torch.tensor([[0.0]]), valid, background_weight=0.5)
+    assert float(loss) == pytest.approx(0.0 - 0.1 + 0.5 * 0.4, abs=1e-6)
+    # theta = pi / 2: along = |D_-x R| = 0.1, across = 0, scene = 0 + 0.3
+    loss = agr_loss(rendered, target, rain, torch.tensor([[math.pi / 2]]), valid, background_weight=1.0)
+    assert float(loss) == pytest.approx(0.1 - 0.0 + 1.0 * 0.3, abs=1e-6)
+    # K = 2 averages the directions; invalid directions are left out.
+    both = agr_loss(rendered, target, rain, torch.tensor([[0.0, math.pi / 2]]),
+                    torch.tensor([[True, True]]), background_weight=0.5)
+    assert float(both) == pytest.approx(0.5 * ((-0.1 + 0.2) + (0.1 + 0.15)), abs=1e-6)
+    one = agr_loss(rendered, target, rain, torch.tensor([[0.0, math.pi / 2]]),
+                   torch.tensor([[True, False]]), background_weight=0.5)
+    assert float(one) == pytest.approx(-0.1 + 0.2, abs=1e-6)
+
+
+def test_mean_abs_derivative_shapes():
+    images = torch.rand(2, 3, 8, 9)
+    assert mean_abs_derivative(images, torch.rand(2, 4)).shape == (2, 4)
+
+
+def _streak_scene(angle, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    background = textured_background(64, g).expand(1, 3, 64, 64)
+    rain = streak_layer(64, angle, 25, g).expand(1, 3, 64, 64)
+    rotated = streak_layer(64, angle + 90, 25, torch.Generator().manual_seed(seed + 100)).expand(1, 3, 64, 64)
+    return background, background + rain, rain, rotated
+
+
+@pytest.mark.parametrize("angle", [20.0, 90.0, 135.0])
+def test_agr_prefers_rain_aligned_with_the_streaks(angle):
+    background, rainy, rain, rotated = _streak_scene(angle)
+    agr = AdaptiveGradientRotation()
+    aligned = agr(_ctx(background, rainy, rain))
+    crossed = agr(_ctx(background, rainy, rotated))
+    assert float(aligned) < float(crossed)
+    assert float(aligned) < 0  # strong across-streak gradients of R dominate
+
+
+def test_agr_logs_streak_angles_per_view():
+    background, rainy, rain, _ = _streak_scene(75.0)
+    agr = AdaptiveGradientRotation(AdaptiveGradientRotation.Config(top_k=1))
+    agr(_ctx(background, rainy, rain, view_ids=(7,)))
+    assert set(agr.metrics) == {"streak_deg/view7"}
+    assert abs(agr.metrics["streak_deg/view7"] - 75.0) <= 3.0
+    assert agr.view_angles[7] == [agr.metrics["streak_deg/view7"]]
+    restored = AdaptiveGradientRotation()
+    restored.load_state_dict(agr.state_dict())
+    assert restored.view_angles == agr.view_angles
+
+
+def test_agr_gradients_reach_rain_and_render():
+    background, rainy, rain, _ = _streak_scene(40.0)
+    rendered = background.clone().requires_grad_(True)
+    predicted = (0.5 * rain).requires_grad_(True)
+    AdaptiveGradientRotation()(_ctx(rendered, rainy, predicted)).backward()
+    assert rendered.grad.abs().sum() > 0 and predicted.grad.abs().sum() > 0
+
+
+def test_agr_flat_patch_gives_zero_loss_and_no_angle():
+    flat = torch.full((1, 3, 16, 16), 0.5)
+    agr = AdaptiveGradientRotation()
+    assert float(agr(_ctx(flat, flat, torch.zeros_like(flat)))) == 0.0
+    assert agr.metrics == {}
+
+
+def test_agr_rejects_bad_options():
+    with pytest.raises(ConfigError):
+        AdaptiveGradientRotation(AdaptiveGradientRotation.Config(bins=2))
+    with pytest.raises(ConfigError):
+        AdaptiveGradientRotation(AdaptiveGradientRotation.Config(kernel="prewitt"))

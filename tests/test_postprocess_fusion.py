@@ -1,0 +1,50 @@
+"""Rain-mask fusion: rendered pixels where rain is predicted, input pixels elsewhere."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from rainyscape.errors import ConfigError
+from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion, rain_mask
+
+
+def test_mask_thresholds_any_channel_and_dilates():
+    rain = torch.zeros(3, 7, 7)
+    rain[1, 3, 3] = 0.2  # above the threshold in one channel
+    rain[0, 0, 6] = 0.05  # below
+    mask = rain_mask(rain, threshold=0.1, dilation=0)
+    assert mask.shape == (1, 7, 7) and mask.sum() == 1 and mask[0, 3, 3]
+    grown = rain_mask(rain, threshold=0.1, dilation=1)
+    assert grown.sum() == 9 and grown[0, 2:5, 2:5].all()
+    assert rain_mask(rain, threshold=0.01, dilation=0).sum() == 2
+
+
+def test_fusion_keeps_render_under_rain_and_input_elsewhere():
+    rendered = torch.full((3, 6, 6), 0.3)
+    rainy = torch.full((3, 6, 6), 0.7)
+    rain = torch.zeros(3, 6, 6)
+    rain[:, 0, 0] = 0.5
+    fused = RainMaskFusion(RainMaskFusion.Config(threshold=0.1, dilation=1))(rendered, rain, rainy)
+    expected = rainy.clone()
+    expected[:, :2, :2] = 0.3
+    assert torch.equal(fused, expected)
+
+
+def test_perfect_rain_prediction_recovers_the_clean_image():
+    g = torch.Generator().manual_seed(0)
+    clean = torch.rand(3, 16, 16, generator=g) * 0.5
+    rain = torch.zeros(3, 16, 16)
+    rain[:, 4:12, 7] = 0.4  # one streak
+    rendered = clean + 0.05 * torch.randn(3, 16, 16, generator=g)  # a slightly blurry render
+    fused = RainMaskFusion()(rendered, rain, clean + rain)
+    outside = rain_mask(rain, 0.02, 1).expand(3, -1, -1)
+    assert torch.equal(fused[~outside], clean[~outside])
+    assert torch.equal(fused[outside], rendered[outside])
+
+
+def test_bad_options():
+    with pytest.raises(ConfigError):
+        RainMaskFusion(RainMaskFusion.Config(threshold=-1))
+    with pytest.raises(ConfigError):
+        RainMaskFusion(RainMaskFusion.Config(dilation=-1))

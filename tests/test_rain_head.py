@@ -1,0 +1,141 @@
+"""The rain head: windowed output equals the full-view map, latents, parameter groups."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from rainyscape.cameras import Cameras, Window
+from rainyscape.errors import ConfigError
+from rainyscape.rain.head import RainPredictor, camera_vectors
+from rainyscape.scene import SceneData
+
+
+def _scene(n=3, height=37, width=45) -> SceneData:
+    g = torch.Generator().manual_seed(0)
+    c2w = torch.eye(4).repeat(n, 1, 1)
+    c2w[:, :3, 3] = torch.randn(n, 3, generator=g) * 4
+    f = torch.full((n,), 40.0)
+    cams = Cameras(c2w, f, f, torch.full((n,), width / 2), torch.full((n,), height / 2), width, height)
+    return SceneData(name="toy", images=torch.zeros(n, height, width, 3, dtype=torch.uint8), cameras=cams,
+                     image_names=[f"{i:03d}.png" for i in range(n)], train_indices=list(range(n)),
+                     eval_indices=[], near=0.1, far=10.0, scene_box=torch.tensor([[-1.0] * 3, [1.0] * 3]))
+
+
+def _head(scene, **options) -> RainPredictor:
+    torch.manual_seed(0)
+    opts = dict(lowres_channels=(6, 6, 6, 6), highres_channels=4, max_rain=0.5)
+    opts.update(options)
+    head = RainPredictor(RainPredictor.Config(**opts), scene)
+    with torch.no_grad():  # positive biases so that most of the map is non-zero
+        for conv in [*head.lowres, head.to_subpixels, head.to_rgb]:
+            conv.bias.add_(0.1)
+    return head
+
+
+def _full_view_reference(head: RainPredictor, view: int) -> torch.Tensor:
+    """The same network run the plain way: whole latent map, zero-padded convolutions."""
+    c = head.config
+    code = head.embedding(torch.tensor([view]))
+    x = F.relu(head.to_map(code)).reshape(1, c.latent_channels, head.latent_h, head.latent_w)
+    for conv in head.lowres:
+        x = F.relu(F.conv2d(x, conv.weight, conv.bias, padding=1))
+    x = F.relu(F.conv2d(x, head.to_subpixels.weight, head.to_subpixels.bias, padding=1))
+    x = F.pixel_shuffle(x, c.upscale)[:, :, : head.height, : head.width]
+    return head.bound(F.conv2d(x, head.to_rgb.weight, head.to_rgb.bias, padding=1))
+
+
+@pytest.mark.parametrize("upscale,latent_channels", [(2, 1), (3, 2), (1, 1)])
+def test_windows_equal_crops_of_the_full_view(upscale, latent_channels):
+    scene = _scene()
+    head = _head(scene, upscale=upscale, latent_channels=latent_channels)
+    with torch.no_grad():
+        reference = _full_view_reference(head, 1)[0]
+        assert (reference > 0).float().mean() > 0.2  # the comparison is not all zeros
+        full = head(torch.tensor([1]), Window.full(scene.cameras[[1]]))[0]
+        assert torch.allclose(full, reference, atol=1e-6)
+        # Windows of one size at corners, edges and inside, with both parities of offset.
+        corners = [(0, 0), (45 - 13, 37 - 11), (5, 3), (0, 26), (32, 0), (17, 14)]
+        x0 = torch.tensor([c[0] for c in corners])
+        y0 = torch.tensor([c[1] for c in corners])
+        windows = head(torch.ones(len(corners), dtype=torch.long), Window(x0, y0, 13, 11))
+        for b, (x, y) in enumerate(corners):
+            assert torch.allclose(windows[b], reference[:, y:y + 11, x:x + 13], atol=1e-6)
+
+
+def test_output_is_non_negative_and_bounded():
+    scene = _scene()
+    head = _head(scene, max_rain=0.05)
+    with torch.no_grad():
+        for conv in [*head.lowres, head.to_subpixels, head.to_rgb]:
+            conv.bias.add_(5.0)
+        rain = head(torch.tensor([0, 2]), Window(torch.tensor([0, 3]), torch.tensor([1, 4]), 20, 16))
+    assert rain.shape == (2, 3, 16, 20)
+    assert rain.min() >= 0 and rain.max() <= 0.05 and rain.max() > 0.04
+
+
+def test_views_are_independent():
+    # No recurrence between views: changing view 0's state leaves view 2's rain unchanged.
+    scene = _scene()
+    head = _head(scene)
+    window = Window.full(scene.cameras[[2]])
+    with torch.no_grad():
+        before = head(torch.tensor([2]), window)
+        head.view_states[0].add_(3.0)
+        assert torch.equal(head(torch.tensor([2]), window), before)
+        head.view_states[2].add_(3.0)
+        assert not torch.equal(head(torch.tensor([2]), window), before)
+
+
+def test_latents_are_checkpointed_and_not_optimised_by_the_network_groups():
+    scene = _scene()
+    head = _head(scene)
+    latents = head.latents()
+    assert [tuple(p.shape) for p in latents] == [(128,), (3, 64)]
+    state = head.state_dict()
+    assert "scene_state" in state and "view_states" in state
+    assert "camera_vectors" not in state  # derived from the scene, not learned
+    grouped = {id(p) for g in head.param_groups() for p in g.params}
+    assert not grouped & {id(p) for p in latents}
+    assert grouped | {id(p) for p in latents} == {id(p) for p in head.parameters()}
+    other = _head(scene)
+    other.load_state_dict(state)
+    assert torch.equal(other.view_states, head.view_states)
+
+
+def test_param_groups_follow_the_paper():
+    groups = {g.name: g for g in _head(_scene()).param_groups()}
+    assert set(groups) == {"rain_mlp", "rain_cnn"}
+    assert groups["rain_mlp"].lr == 1e-3 and groups["rain_cnn"].lr == 1e-4
+    assert all(g.betas == (0.5, 0.999) for g in groups.values())
+
+
+def test_gradients_reach_latents_of_the_requested_view_only():
+    scene = _scene()
+    head = _head(scene)
+    rain = head(torch.tensor([1]), Window(torch.tensor([4]), torch.tensor([6]), 16, 16))
+    s_grad, v_grad = torch.autograd.grad(rain.sum(), head.latents())
+    assert s_grad.abs().sum() > 0 and v_grad[1].abs().sum() > 0
+    assert v_grad[0].abs().sum() == 0 and v_grad[2].abs().sum() == 0
+
+
+def test_camera_vectors_are_normalised_poses():
+    scene = _scene()
+    p = camera_vectors(scene.cameras)
+    assert p.shape == (3, 16)
+    assert p.reshape(3, 4, 4)[:, :3, 3].norm(dim=-1).max() == pytest.approx(1.0)
+    assert torch.equal(p.reshape(3, 4, 4)[:, :3, :3], scene.cameras.c2w[:, :3, :3])
+
+
+def test_resolution_comes_from_the_scene():
+    head = _head(_scene(height=21, width=30), upscale=2)
+    assert (head.latent_h, head.latent_w) == (11, 15)
+    assert head.to_map.out_features == 11 * 15
+
+
+def test_bad_options_are_config_errors():
+    with pytest.raises(ConfigError):
+        _head(_scene(), upscale=0)
+    with pytest.raises(ConfigError):
+        _head(_scene(), lowres_channels=())
