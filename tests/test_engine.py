@@ -79,6 +79,9 @@ def _params(pipeline) -> dict[str, torch.Tensor]:
 
 RESUME_CASES = {
     "toy": ["trainer.max_iters=12"],
+    # rain head, Langevin noise and joint phase across the split: latents must resume exactly
+    "rainyscape-nerf": ["trainer.max_iters=12", "trainer.warmup_fraction=0.5",
+                        "trainer.warmup_patches=4", "trainer.joint_patch_size=16"],
 }
 
 
@@ -101,3 +104,19 @@ def test_resume_reaches_the_same_parameters(method, toy_env, tiny_scene_dir, tmp
     assert pa.keys() == pb.keys()
     for key in pa:
         assert torch.allclose(pa[key], pb[key], atol=1e-6, rtol=0), key
+
+
+def test_plugin_field_gets_the_rain_module_for_free(toy_env, tiny_scene_dir, tmp_path):
+    """A third-party field swapped into a built-in rain method, with a plugin loss added."""
+    cfg = config.method_config("rainyscape-nerf", [
+        f"data={tiny_scene_dir}", "field=direction", "losses.mean-abs.weight=0.5",
+        "losses.mean-abs.phases=warmup", "trainer.max_iters=16", "trainer.joint_patch_size=16",
+        "trainer.eval_every=0", "trainer.log_every=1", "trainer.progress=false",
+        f"trainer.output_dir={tmp_path}"])
+    result = train_run(cfg)
+    assert json.loads((result.run_dir / "status.json").read_text())["state"] == "finished"
+    records = [json.loads(line) for line in (result.run_dir / "log.jsonl").read_text().splitlines()]
+    joint = [r for r in records if r.get("phase") == "joint" and "terms" in r]
+    assert joint and {"likelihood", "reconstruction", "tv", "agr"} <= set(joint[-1]["terms"])
+    warm = [r for r in records if r.get("phase") == "warmup" and "terms" in r]
+    assert "mean-abs" in warm[-1]["terms"]
