@@ -2,8 +2,7 @@
 
 ``tiny_scene_dir``: 3 x 4 = 12 views at 48 x 48 px of the demo street in static rain, with
 clean images, depth and the ground-truth rain layer (generated once per test session, ~2 s).
-Drops are drawn larger than in the demo so streaks stay visible at 48 px (rainy vs clean
-about 28 dB).
+Fewer, larger drops than the demo's (rainy vs clean about 28 dB at 48 px).
 ``tiny_scene``: that folder read by the maya-csv parser (default options: every 8th view
 held out, world normalised).
 """
@@ -18,7 +17,7 @@ def tiny_scene_dir(tmp_path_factory):
     from rainyscape.synth import generate
 
     return generate(tmp_path_factory.mktemp("tiny_scene") / "scene", "demo", rows=3, cols=4,
-                    width=48, height=48, mode="static", seed=0, size_scale=8.0, density=10.0)
+                    width=48, height=48, mode="static", seed=0, size_scale=6.0, density=6.0)
 
 
 @pytest.fixture(scope="session")

@@ -64,11 +64,25 @@ def test_aligned_pose_errors_are_zero_for_a_similar_trajectory_and_see_noise():
     assert clean.center_rmse < 1e-9 and clean.rotation_deg.max() < 1e-6
     assert clean.scale == pytest.approx(scale)
     assert clean.extent == pytest.approx(trajectory_extent(ref[:, :3, 3]))
-    turned = est.copy()  # centres unchanged, so the alignment is too
+    turned = est.copy()
     turned[0, :3, :3] = turned[0, :3, :3] @ Rotation.from_euler("x", 3, degrees=True).as_matrix()
-    errors = aligned_pose_errors(turned, ref)
+    errors = aligned_pose_errors(turned, ref, axis_arm=0)  # centres unchanged: so is the alignment
     assert errors.rotation_deg[0] == pytest.approx(3.0, abs=1e-6)
     assert errors.rotation_deg[1:].max() < 1e-6
+    errors = aligned_pose_errors(turned, ref)  # the axes pull the alignment a little towards it
+    assert 2.5 < errors.rotation_deg[0] <= 3.0 and errors.rotation_deg[1:].max() < 0.5
     moved = est.copy()
     moved[1, :3, 3] += 0.5
     assert aligned_pose_errors(moved, ref).center_rmse > 0.01
+
+
+def test_camera_axes_pin_the_rotation_about_a_straight_trajectory():
+    n = 8
+    ref = np.tile(np.eye(4), (n, 1, 1))
+    ref[:, :3, :3] = Rotation.random(n, random_state=7).as_matrix()
+    ref[:, 0, 3] = np.linspace(0, 10, n)  # centres on a line: a turn about it is invisible
+    turn = Rotation.from_euler("x", 20, degrees=True).as_matrix()
+    est = ref.copy()
+    est[:, :3, :3] = turn @ ref[:, :3, :3]
+    est[:, :3, 3] += np.random.default_rng(8).normal(scale=1e-3, size=(n, 3))
+    assert aligned_pose_errors(est, ref).rotation_deg.max() < 0.1

@@ -215,3 +215,18 @@ def test_generate_refuses_non_empty_folder_and_bad_options(tmp_path):
         generate(tmp_path / "x", "nope")
     with pytest.raises(ConfigError, match="mode"):
         generate(tmp_path / "x", "demo", mode="sometimes")
+
+
+def test_density_beyond_the_drop_budget_is_refused(tmp_path):
+    with pytest.raises(ConfigError, match="lower density"):
+        generate(tmp_path / "x", "demo", rows=1, cols=1, width=8, height=8, density=1e6)
+
+
+@pytest.mark.slow  # two spawned processes each import torch
+def test_worker_processes_write_the_same_scene(tmp_path):
+    one = generate(tmp_path / "one", "yard", rows=1, cols=2, width=20, height=20, workers=1)
+    two = generate(tmp_path / "two", "yard", rows=1, cols=2, width=20, height=20, workers=2)
+    for sub in ("images_rain", "images_wo_rain", "rain"):
+        for p in sorted((one / sub).iterdir()):
+            assert p.read_bytes() == (two / sub / p.name).read_bytes()
+    assert json.loads((two / "scene.json").read_text())["workers"] == 2

@@ -22,19 +22,15 @@ INT_KEYS = ("rows", "cols", "width", "height", "seed", "workers")
 TEXT_KEYS = ("preset", "out", "mode", "trajectory")
 
 
-def parse_args(argv: list[str]) -> tuple[set[str], dict]:
+def parse_args(argv: list[str]) -> dict:
     from rainyscape.config import coerce
     from rainyscape.errors import ConfigError
-    from rainyscape.synth.rain import RainConfig
+    from rainyscape.synth.params import RainConfig
 
-    flags = {a for a in argv if a.startswith("-")}
-    unknown_flags = flags - {"--help", "-h", "--list"}
-    if unknown_flags:
-        raise ConfigError(f"unknown option {sorted(unknown_flags)[0]}; see rs-synth --help")
     values: dict = {}
     rain_keys = RainConfig.keys()
     valid = [*TEXT_KEYS, *INT_KEYS, "force", *rain_keys]
-    for arg in (a for a in argv if not a.startswith("-")):
+    for arg in argv:
         if "=" not in arg:
             raise ConfigError(f"cannot read argument '{arg}': expected key=value")
         key, text = arg.split("=", 1)
@@ -52,11 +48,11 @@ def parse_args(argv: list[str]) -> tuple[set[str], dict]:
             close = difflib.get_close_matches(key, valid, n=1)
             hint = f" Did you mean '{close[0]}'?" if close else ""
             raise ConfigError(f"unknown key '{key}'.{hint} Valid keys: {', '.join(valid)}")
-    return flags, values
+    return values
 
 
 def print_presets() -> None:
-    from rainyscape.synth import SIM_VERSION
+    from rainyscape.synth.params import SIM_VERSION
     from rainyscape.synth.presets import PRESETS
     from rainyscape.synth.strength import MEASURED_VERSION, PRESET_STRENGTH
 
@@ -71,13 +67,17 @@ def print_presets() -> None:
 def main(argv: list[str]) -> int:
     from rainyscape.errors import ConfigError
 
-    flags, values = parse_args(argv)
+    flags = {a for a in argv if a.startswith("-")}
+    unknown_flags = flags - {"--help", "-h", "--list"}
+    if unknown_flags:
+        raise ConfigError(f"unknown option {sorted(unknown_flags)[0]}; see rs-synth --help")
     if "--help" in flags or "-h" in flags:
         print(__doc__.strip())
         return 0
     if "--list" in flags:
         print_presets()
         return 0
+    values = parse_args([a for a in argv if not a.startswith("-")])
     if "out" not in values:
         raise ConfigError("where to write? e.g. rs-synth preset=demo out=data/demo (rs-synth --list shows presets)")
     import json

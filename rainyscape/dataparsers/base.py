@@ -89,8 +89,10 @@ def assemble_scene(config: CommonParserConfig, *, name: str, source: Path, image
         lo, hi = points.quantile(0.01, 0), points.quantile(0.99, 0)
         box = torch.stack([lo, hi])
     else:
+        # No points: cameras around the centre see content out to about their own distance
+        # (a half-size cube cut off the street scenes' buildings and ground).
         r = cameras.centers.norm(dim=-1).max().item()
-        box = torch.tensor([[-r, -r, -r], [r, r, r]], dtype=torch.float32) * 0.5
+        box = torch.tensor([[-r, -r, -r], [r, r, r]], dtype=torch.float32)
     if config.holdout_file:
         held = read_holdout_file(Path(config.holdout_file), image_names)
         train, held = split_indices(len(image_names), explicit=held)

@@ -19,6 +19,7 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterable
 
 import torch
 from torch import Tensor
@@ -65,6 +66,13 @@ def predict_rain(pipeline: Pipeline, index: int, tile: int = 128) -> Tensor:
             win = Window(torch.tensor([x]), torch.tensor([y]), tw, th)
             out[:, y:y + th, x:x + tw] = head(ids, win)[0]
     return out
+
+
+def progress(items: list, what: str, unit: str = "view") -> Iterable:
+    """A console progress bar over ``items`` (only when stderr is a terminal)."""
+    from tqdm import tqdm
+
+    return tqdm(items, desc=what, unit=unit, file=sys.stderr, disable=None, leave=False)
 
 
 def to_float(u8: Tensor, device) -> Tensor:
@@ -114,7 +122,7 @@ def _agr_options(pipeline: Pipeline) -> dict:
     for cfg, _ in pipeline.losses.values():
         if cfg.name == "agr":
             opts = vars(cfg.options) if not isinstance(cfg.options, dict) else cfg.options
-            return {k: opts[k] for k in ("bins", "threshold") if k in opts}
+            return {k: opts[k] for k in ("bins", "threshold", "smoothing", "kernel") if k in opts}
     return {}
 
 
@@ -219,7 +227,7 @@ def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: i
     options = _agr_options(pipeline)
     scene = pipeline.scene
     rows, kept = [], []
-    for i in list(scene.train_indices) + list(scene.eval_indices):
+    for i in progress(list(scene.train_indices) + list(scene.eval_indices), "evaluating views"):
         v = view_images(pipeline, i)
         rows.append(view_metrics(v, lpips, options))
         if v.split == "train" and len(kept) < keep:

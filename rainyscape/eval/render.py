@@ -19,7 +19,7 @@ import torch
 
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.eval.camera_path import path_cameras
-from rainyscape.eval.evaluate import render_cameras, view_images
+from rainyscape.eval.evaluate import progress, render_cameras, view_images
 from rainyscape.eval.images import depth_map, error_map, save_png, strip_panels, side_by_side, to_uint8
 
 
@@ -65,7 +65,7 @@ def render_views(pipeline: Pipeline, out_dir: Path, indices: list[int]) -> dict[
         save_png(out_dir / kind / f"{stem}.png", image)
         counts[kind] = counts.get(kind, 0) + 1
 
-    for i in indices:
+    for i in progress(indices, "rendering views"):
         v = view_images(pipeline, i)
         stem = Path(v.name).stem
         put("clean", stem, to_uint8(v.rendered))
@@ -104,7 +104,8 @@ def render_path_video(pipeline: Pipeline, path: Path, kind: str = "views", frame
     scene = pipeline.scene
     indices = list(scene.train_indices) or list(range(scene.num_images))
     cams = path_cameras(scene.cameras, indices, kind, frames)
-    images = [to_uint8(render_cameras(pipeline, cams[[k]]).rgb[0]) for k in range(len(cams))]
+    images = [to_uint8(render_cameras(pipeline, cams[[k]]).rgb[0])
+              for k in progress(list(range(len(cams))), "rendering the camera path", "frame")]
     return write_video(images, path, fps)
 
 

@@ -111,20 +111,29 @@ def psnr_plot(train: list[dict], evals: list[dict]) -> str | None:
 
 
 def term_metrics_plot(train: list[dict]) -> str | None:
-    """What loss terms report about themselves (e.g. AGR's estimated angle, robust inliers)."""
-    keys = sorted({k for r in train for k in r.get("metrics", {})})
-    if not keys:
+    """What loss terms report about themselves (e.g. AGR's estimated angle, robust inliers).
+
+    Per-view keys (``name/view3``) share one panel per name, drawn as points."""
+    groups: dict[str, list[tuple[int, float]]] = {}
+    per_view: set[str] = set()
+    for r in train:
+        for key, value in r.get("metrics", {}).items():
+            if isinstance(value, (int, float)):
+                name = key.split("/", 1)[0]
+                per_view.update([name] if "/" in key else [])
+                groups.setdefault(name, []).append((r["step"], float(value)))
+    if not groups:
         return None
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(6.4, 1.9 * len(keys)), dpi=100, layout="constrained")
-    axes = fig.subplots(len(keys), 1, sharex=True, squeeze=False)[:, 0]
-    for ax, key in zip(axes, keys):
-        pts = [(r["step"], r["metrics"][key]) for r in train
-               if isinstance(r.get("metrics", {}).get(key), (int, float))]
-        if pts:
+    fig = Figure(figsize=(6.4, 1.9 * len(groups)), dpi=100, layout="constrained")
+    axes = fig.subplots(len(groups), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, (name, pts) in zip(axes, sorted(groups.items())):
+        if name in per_view:
+            ax.plot(*zip(*pts), ".", ms=2)
+        else:
             ax.plot(*zip(*pts), lw=1)
-        ax.set_ylabel(key, fontsize=8), ax.grid(alpha=0.3)
+        ax.set_ylabel(name, fontsize=8), ax.grid(alpha=0.3)
     axes[-1].set_xlabel("step")
     return _fig_uri(fig)
 

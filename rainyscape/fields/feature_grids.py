@@ -1,11 +1,12 @@
 """Explicit feature grids over [-1, 1]^3, sampled with ``grid_sample`` and resampled to grow.
 
-- :class:`DenseGrid`: C channels at n^3 lattice points, trilinear interpolation.
+- :class:`DenseGrid`: C channels at nx * ny * nz lattice points, trilinear interpolation.
 - :class:`VMGrid`: TensoRF's vector-matrix factorisation. Feature r of mode m at (x, y, z)
   is plane_m[r](a, b) * line_m[r](c) for the axis pairs (x, y | z), (x, z | y), (y, z | x):
-  3 R (n^2 + n) numbers stand for R features on an n^3 lattice.
+  R (na nb + nc) numbers per mode stand for R features on the whole lattice.
 
-Lattices are corner-aligned (``align_corners=True``): n points span [-1, 1] on each axis.
+Lattices are corner-aligned (``align_corners=True``): n points span [-1, 1] on an axis.
+``sizes`` are lattice points per axis in (x, y, z) order.
 """
 
 from __future__ import annotations
@@ -18,48 +19,50 @@ from torch import Tensor, nn
 MODES = ((0, 1, 2), (0, 2, 1), (1, 2, 0))
 
 
-def resample(grid: Tensor, resolution: int) -> Tensor:
-    """Resample a (1, C, *spatial) lattice to ``resolution`` along every axis that is not 1
-    (a line (1, C, n, 1) stays a line)."""
-    size = tuple(resolution if s > 1 else 1 for s in grid.shape[2:])
-    mode = "trilinear" if grid.dim() == 5 else "bilinear"
-    return F.interpolate(grid, size=size, mode=mode, align_corners=True)
+def resample(lattice: Tensor, size: tuple[int, ...]) -> Tensor:
+    """Interpolate a (1, C, *spatial) lattice to ``size`` (spatial, in storage order)."""
+    mode = "trilinear" if lattice.dim() == 5 else "bilinear"
+    return F.interpolate(lattice, size=tuple(size), mode=mode, align_corners=True)
 
 
 class DenseGrid(nn.Module):
-    """``channels`` features on an n^3 lattice, stored (1, C, z, y, x) as grid_sample reads it."""
+    """``channels`` features per lattice point, stored (1, C, nz, ny, nx) as grid_sample reads it."""
 
-    def __init__(self, channels: int, resolution: int, init: float = 0.0):
+    def __init__(self, channels: int, sizes: tuple[int, int, int], init: float = 0.0):
         super().__init__()
-        n = resolution
-        self.grid = nn.Parameter(torch.full((1, channels, n, n, n), float(init)))
+        nx, ny, nz = sizes
+        self.grid = nn.Parameter(torch.full((1, channels, nz, ny, nx), float(init)))
 
     @property
-    def resolution(self) -> int:
-        return self.grid.shape[-1]
+    def channels(self) -> int:
+        return self.grid.shape[1]
 
     def forward(self, x: Tensor) -> Tensor:
         """Features (P, C) at points (P, 3) in [-1, 1]."""
         out = F.grid_sample(self.grid, x.view(1, -1, 1, 1, 3), align_corners=True)
-        return out.view(self.grid.shape[1], -1).T
+        return out.view(self.channels, -1).T
 
     def factors(self) -> list[nn.Parameter]:
         return [self.grid]
 
+    @torch.no_grad()
+    def resize(self, sizes: tuple[int, int, int]) -> None:
+        self.grid.data = resample(self.grid.data, sizes[::-1])
+
 
 class VMGrid(nn.Module):
-    """``components`` features per mode at ``resolution`` lattice points per axis."""
+    """``components`` features per mode (3 x components in all)."""
 
-    def __init__(self, components: int, resolution: int, init_scale: float = 0.1):
+    def __init__(self, components: int, sizes: tuple[int, int, int], init_scale: float = 0.1):
         super().__init__()
         self.planes = nn.ParameterList(
-            [nn.Parameter(init_scale * torch.randn(1, components, resolution, resolution)) for _ in MODES])
+            [nn.Parameter(init_scale * torch.randn(1, components, sizes[b], sizes[a])) for a, b, _ in MODES])
         self.lines = nn.ParameterList(
-            [nn.Parameter(init_scale * torch.randn(1, components, resolution, 1)) for _ in MODES])
+            [nn.Parameter(init_scale * torch.randn(1, components, sizes[c], 1)) for _, _, c in MODES])
 
     @property
-    def resolution(self) -> int:
-        return self.planes[0].shape[-1]
+    def channels(self) -> int:
+        return 3 * self.planes[0].shape[1]
 
     def forward(self, x: Tensor) -> Tensor:
         """All features (P, 3 R) at points (P, 3) in [-1, 1]."""
@@ -75,3 +78,9 @@ class VMGrid(nn.Module):
 
     def factors(self) -> list[nn.Parameter]:
         return [*self.planes, *self.lines]
+
+    @torch.no_grad()
+    def resize(self, sizes: tuple[int, int, int]) -> None:
+        for (a, b, c), plane, line in zip(MODES, self.planes, self.lines):
+            plane.data = resample(plane.data, (sizes[b], sizes[a]))
+            line.data = resample(line.data, (sizes[c], 1))

@@ -1,14 +1,17 @@
 """The fast CPU field: explicit grids + tiny MLP, grown coarse-to-fine.
 
-Space is contracted into the cube [-2, 2]^3 (the scene box maps to [-1, 1]^3, everything
-out to infinity to the shell around it). A dense grid holds density (one channel: the
-cheapest lookup per sample on a CPU) and a TensoRF-style factorised grid holds colour
-features for a tiny MLP. Samples are evenly spaced (in cells) up to where the ray
-leaves the scene box, then evenly spaced in inverse distance out to ``far``; an occupancy
-grid skips empty space, and colour is only computed where a sample's weight matters.
-Light that reaches ``far`` takes a learned sky colour per direction.
+Space is contracted into the cube [-2, 2]^3: the scene box maps to [-1, 1]^3 and everything
+out to infinity to the shell around it. A density grid (dense, one channel: the cheapest
+lookup per sample on a CPU; or factorised) and a TensoRF-style factorised colour grid for a
+tiny MLP cover that cube, with per-axis resolutions in proportion to the box so voxels are
+about cubic in the world.
 
-The grid starts coarse and grows on a schedule: an explicit grid has no spectral bias of its
+Samples are evenly spaced (in voxels) up to where the ray leaves the scene box, then evenly
+in inverse distance out to ``far`` (evenly in the contracted coordinate). An occupancy grid
+skips empty space; colour is computed only where a sample's weight matters. Light that
+reaches ``far`` takes a learned sky colour per direction.
+
+The grids start coarse and grow on a schedule: an explicit grid has no spectral bias of its
 own, so its resolution is what makes it fit low frequencies first (the paper's prior).
 """
 
@@ -30,7 +33,7 @@ from rainyscape.fields.feature_grids import DenseGrid, VMGrid, resample
 from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
 from rainyscape.fields.optim_state import resize_adam_state
 from rainyscape.fields.ray_field import RayField
-from rainyscape.fields.rendering import composite, compositing_weights
+from rainyscape.fields.rendering import compositing_weights
 from rainyscape.fields.sampling import ray_box_intersection
 from rainyscape.scene import SceneData
 
@@ -48,6 +51,12 @@ def growth_resolution(step: int, max_iters: int, initial: int, final: int,
     return int(round(math.exp(math.log(initial) * (1 - level) + math.log(final) * level)))
 
 
+def axis_sizes(resolution: int, extent: Tensor) -> tuple[int, int, int]:
+    """Lattice points per axis: ``resolution``^3 in all, shared in proportion to ``extent``."""
+    ratio = extent / extent.prod() ** (1.0 / 3.0)
+    return tuple(max(2, int(round(resolution * float(r)))) for r in ratio)
+
+
 def sky_frame(up: Tensor) -> Tensor:
     """Orthonormal columns (e1, e2, up) for a given up vector."""
     up = F.normalize(up, dim=0)
@@ -57,41 +66,43 @@ def sky_frame(up: Tensor) -> Tensor:
 
 
 class ColorNet(nn.Module):
-    """Colour features + view direction -> rgb (two small hidden layers)."""
+    """Colour features + view direction -> rgb: one small hidden layer."""
 
     def __init__(self, feature_dim: int, view_freqs: int, hidden: int):
         super().__init__()
         self.view_freqs = view_freqs
-        self.mlp = nn.Sequential(
-            nn.Linear(feature_dim + encoded_dim(3, view_freqs), hidden), nn.ReLU(),
-            nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 3))
+        self.mlp = nn.Sequential(nn.Linear(feature_dim + encoded_dim(3, view_freqs), hidden),
+                                 nn.ReLU(), nn.Linear(hidden, 3))
 
     def forward(self, features: Tensor, viewdirs: Tensor) -> Tensor:
-        return torch.sigmoid(self.mlp(torch.cat([features, positional_encoding(viewdirs, self.view_freqs)], -1)))
+        x = torch.cat([features, positional_encoding(viewdirs, self.view_freqs)], -1)
+        return torch.sigmoid(self.mlp(x))
 
 
 class GridField(RayField):
-    """Fast field: dense density + factorised colour grid, tiny MLP, occupancy grid, coarse-to-fine."""
+    """Fast field: explicit density + factorised colour grids, tiny MLP, coarse-to-fine growth."""
 
-    description = "fast grid field (CPU/GPU): dense density + factorised colour grid, tiny MLP, coarse-to-fine"
+    description = "fast grid field (CPU/GPU): explicit grids + tiny MLP, occupancy grid, coarse-to-fine"
 
     @dataclass
     class Config:
-        resolution_init: int = 16  # grid samples per axis of the contracted cube at the start ...
+        resolution_init: int = 16  # cube root of the lattice size of the contracted cube at the start ...
         resolution_final: int = 128  # ... and after the last growth
         growth_at: tuple[float, ...] = (0.05, 0.1, 0.2, 0.3, 0.4)  # fractions of the run where it grows
+        density_grid: Literal["dense", "vm"] = "dense"
+        density_components: int = 4  # vm density: components per mode
         color_components: int = 8  # factorised colour grid: components per mode (x3 modes)
-        feature_dim: int = 27  # colour features fed to the MLP
-        hidden: int = 64  # MLP width
+        feature_dim: int = 16  # colour features fed to the MLP
+        hidden: int = 32  # MLP width
         view_freqs: int = 2  # positional-encoding frequencies of the view direction
-        step_ratio: float = 0.5  # sample spacing in grid cells
+        step_ratio: float = 0.5  # sample spacing in voxels
         density_scale: float = 25.0  # sigma = scale * softplus(grid + shift)
-        density_shift: float = -10.0  # the grid starts at 0: nearly empty space
+        density_shift: float = -10.0  # a zero grid is nearly empty space
         box_scale: float = 1.0  # the uncontracted region: the scene box scaled about its centre
         background: Literal["sky", "learned", "black", "white"] = "sky"  # sky: colour per direction
         occupancy_resolution: int = 64
         occupancy_from: float = 0.1  # fraction of the run before the first occupancy update
-        occupancy_every: int = 100  # steps between updates
+        occupancy_every: int = 50  # steps between updates
         occupancy_threshold: float = 0.01  # opacity of one step below which a cell is empty
         weight_threshold: float = 1e-4  # colour is computed only where a sample's weight reaches this
         lr_density: float = 0.1
@@ -111,22 +122,25 @@ class GridField(RayField):
                               f"{c.resolution_init}, {c.resolution_final}")
         if any(not 0 <= f <= 1 for f in c.growth_at):
             raise ConfigError(f"field.growth_at: fractions of the run in [0, 1], got {c.growth_at}")
-        if c.step_ratio <= 0:
-            raise ConfigError(f"field.step_ratio must be > 0, got {c.step_ratio}")
+        if c.step_ratio <= 0 or c.box_scale <= 0:
+            raise ConfigError("field.step_ratio and field.box_scale must be > 0")
         if not 0 < scene.near < scene.far:
             raise ConfigError(f"scene {scene.name}: need 0 < near < far, got {scene.near}, {scene.far}")
         self.eval_chunk, self.train_chunk = c.chunk, c.train_chunk
         self.near, self.far = float(scene.near), float(scene.far)
         box = scene.scene_box.float()
-        center, half = 0.5 * (box[0] + box[1]), 0.5 * (box[1] - box[0]) * c.box_scale
+        center, half = 0.5 * (box[0] + box[1]), (0.5 * (box[1] - box[0]) * c.box_scale).clamp_min(1e-3)
         self.register_buffer("box_center", center, persistent=False)
-        self.register_buffer("box_half", half.clamp_min(1e-6), persistent=False)
+        self.register_buffer("box_half", half, persistent=False)
         # The sky map's frame: latitude about "up", against the cameras' mean down axis (OpenCV y).
         self.register_buffer("sky_frame", sky_frame(-scene.cameras.c2w[:, :3, 1].float().mean(0)),
                              persistent=False)
-        self.density = DenseGrid(1, c.resolution_init)
-        self.color = VMGrid(c.color_components, c.resolution_init)
-        self.basis = nn.Linear(3 * c.color_components, c.feature_dim, bias=False)
+        self.register_buffer("grid_resolution", torch.tensor(c.resolution_init))
+        sizes = axis_sizes(c.resolution_init, half)
+        self.density_grid = (DenseGrid(1, sizes) if c.density_grid == "dense"
+                             else VMGrid(c.density_components, sizes))
+        self.color_grid = VMGrid(c.color_components, sizes)
+        self.basis = nn.Linear(self.color_grid.channels, c.feature_dim, bias=False)
         self.color_net = ColorNet(c.feature_dim, c.view_freqs, c.hidden)
         self.sky = nn.Parameter(torch.zeros(1, 3, 8, 16)) if c.background == "sky" else None
         self.sky_color = nn.Parameter(torch.zeros(3)) if c.background == "learned" else None
@@ -136,16 +150,22 @@ class GridField(RayField):
 
     @property
     def resolution(self) -> int:
-        return self.density.resolution
+        return int(self.grid_resolution)
 
     def step_size(self) -> float:
         """Sample spacing in world units inside the scene box."""
-        cell = 4.0 / (self.resolution - 1)  # the grid spans the contracted cube [-2, 2]
-        return self.config.step_ratio * cell * float(self.box_half.mean())
+        sizes = torch.tensor(axis_sizes(self.resolution, self.box_half.cpu()), dtype=torch.float32)
+        voxel = 4.0 * self.box_half.cpu() / (sizes - 1)  # the lattice spans the contracted [-2, 2]
+        return self.config.step_ratio * float(voxel.mean())
 
     def _sigma(self, grid_points: Tensor) -> Tensor:
-        raw = self.density(grid_points)[:, 0]
+        """Density at points of the grids' [-1, 1]^3 (the contracted cube halved)."""
+        raw = self.density_grid(grid_points).sum(-1)
         return self.config.density_scale * F.softplus(raw + self.config.density_shift)
+
+    def density(self, points: Tensor) -> Tensor:
+        """Volume density (P,) at world points (P, 3) of the normalised scene (for export)."""
+        return self._sigma(contract((points - self.box_center) / self.box_half) / 2.0)
 
     def _background(self, directions: Tensor) -> Tensor:
         c = self.config
@@ -165,7 +185,8 @@ class GridField(RayField):
     def _samples(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
         """Sample distances (R, N) and which are real (R, N), for box-normalised rays."""
         step = self.step_size()
-        entry, exit_ = ray_box_intersection(o, d, torch.tensor([[-1.0] * 3, [1.0] * 3], device=o.device))
+        unit_box = torch.tensor([[-1.0] * 3, [1.0] * 3], device=o.device)
+        entry, exit_ = ray_box_intersection(o, d, unit_box)
         # Past the box exit (or the closest approach to it, for rays that miss) samples go
         # evenly in inverse distance: that is evenly in the contracted coordinate.
         closest = -(o * d).sum(-1) / (d * d).sum(-1)
@@ -173,12 +194,12 @@ class GridField(RayField):
         n_lin = max(1, math.ceil(float((split.max() - self.near) / step)))
         n_far = max(1, math.ceil((self.resolution - 1) / 4.0 / self.config.step_ratio))
         shape = (o.shape[0], 1)
-        jitter = torch.rand(shape, device=o.device) if self.training else torch.full(shape, 0.5, device=o.device)
-        k = torch.arange(n_lin, device=o.device, dtype=o.dtype)
-        t_lin = self.near + (k + jitter) * step
+        jitter = (torch.rand(shape, device=o.device) if self.training
+                  else torch.full(shape, 0.5, device=o.device))
+        t_lin = self.near + (torch.arange(n_lin, device=o.device) + jitter) * step
         valid = t_lin < split[:, None]
         t_lin = torch.minimum(t_lin, split[:, None])
-        s = (torch.arange(n_far, device=o.device, dtype=o.dtype) + jitter) / n_far
+        s = (torch.arange(n_far, device=o.device) + jitter) / n_far
         t_far = 1.0 / ((1.0 - s) / split[:, None] + s / self.far)
         t = torch.cat([t_lin, t_far], -1)
         return t, torch.cat([valid, torch.ones_like(t_far, dtype=torch.bool)], -1)
@@ -186,23 +207,23 @@ class GridField(RayField):
     # ----------------------------------------------------------------- rendering
 
     def render_rays(self, origins: Tensor, directions: Tensor, z_scale: Tensor) -> dict[str, Tensor]:
-        # World distances are kept; positions are measured in half box sizes.
+        # Distances stay in world units; positions are measured in half box sizes.
         o = (origins - self.box_center) / self.box_half
         d = directions / self.box_half
         t, valid = self._samples(o, d)
-        deltas = torch.cat([t[:, 1:], torch.full_like(t[:, :1], self.far)], -1) - t
+        deltas = (torch.cat([t[:, 1:], torch.full_like(t[:, :1], self.far)], -1) - t).clamp_min(0.0)
         pts = contract(o[:, None] + t[..., None] * d[:, None])  # (R, N, 3) in [-2, 2]
-        live = valid & self.occupancy.lookup(pts)
-        sigma = torch.zeros_like(t).masked_scatter(live, self._sigma(pts[live] / 2.0))
-        weights, _ = compositing_weights(sigma, deltas.clamp_min(0.0))
-        shade = weights.detach() >= self.config.weight_threshold
-        feats = self.basis(self.color(pts[shade] / 2.0))
-        views = directions[:, None].expand(-1, t.shape[1], -1)[shade]
-        rgb_samples = torch.zeros(*t.shape, 3, dtype=t.dtype, device=t.device)
-        rgb_samples = rgb_samples.masked_scatter(shade[..., None], self.color_net(feats, views))
+        live = (valid & self.occupancy.lookup(pts)).nonzero(as_tuple=True)
+        sigma = torch.zeros_like(t).index_put(live, self._sigma(pts[live] / 2.0))
+        weights, _ = compositing_weights(sigma, deltas)
+        # Colour only where it shows; composited sparsely, straight into the rays.
+        shade = (weights.detach() >= self.config.weight_threshold).nonzero(as_tuple=True)
+        feats = self.basis(self.color_grid(pts[shade] / 2.0))
+        rgb_samples = self.color_net(feats, directions[shade[0]])
+        rgb = torch.zeros_like(origins).index_add(0, shade[0], weights[shade][:, None] * rgb_samples)
         acc = weights.sum(-1)
         rest = (1.0 - acc).clamp_min(0.0)
-        rgb = composite(weights, rgb_samples) + rest[:, None] * self._background(directions)
+        rgb = rgb + rest[:, None] * self._background(directions)
         depth = ((weights * t).sum(-1) + rest * self.far) * z_scale
         return {"rgb": rgb, "depth": depth, "acc": acc}
 
@@ -210,15 +231,17 @@ class GridField(RayField):
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config
-        color = self.color.factors() + [p for p in (self.sky, self.sky_color) if p is not None]
+        color = self.color_grid.factors() + [p for p in (self.sky, self.sky_color) if p is not None]
         network = list(self.basis.parameters()) + list(self.color_net.parameters())
 
         def group(name: str, params: list, lr: float) -> ParamGroup:
             joint = None if c.lr_joint_factor is None else lr * c.lr_joint_factor
+            # A tiny eps (as instant-ngp): grid gradients are tiny where rays barely reach,
+            # and Adam's default 1e-8 would freeze those voxels instead of normalising them.
             return ParamGroup(name, params, lr=lr, lr_decay=c.lr_decay,
-                              lr_decay_steps=c.lr_decay_steps, lr_joint=joint)
+                              lr_decay_steps=c.lr_decay_steps, lr_joint=joint, eps=1e-15)
 
-        return [group(DENSITY_GROUP, self.density.factors(), c.lr_density),
+        return [group(DENSITY_GROUP, self.density_grid.factors(), c.lr_density),
                 group(COLOR_GROUP, color, c.lr_color),
                 group(NETWORK_GROUP, network, c.lr_network)]
 
@@ -228,33 +251,33 @@ class GridField(RayField):
     @torch.no_grad()
     def grow(self, resolution: int, optimizers: dict[str, torch.optim.Optimizer] | None = None) -> None:
         """Resample the grids to ``resolution``; Adam's moments are resampled alike."""
+        sizes = axis_sizes(resolution, self.box_half.cpu())
         optimizers = optimizers or {}
-        for name, grid in ((DENSITY_GROUP, self.density), (COLOR_GROUP, self.color)):
-            for param in grid.factors():
-                param.data = resample(param.data, resolution)
-                if name in optimizers:
-                    resize_adam_state(optimizers[name], param, lambda m: resample(m, resolution))
+        for name, grid in ((DENSITY_GROUP, self.density_grid), (COLOR_GROUP, self.color_grid)):
+            grid.resize(sizes)
+            if name in optimizers:
+                for param in grid.factors():
+                    resize_adam_state(optimizers[name], param, lambda m, p=param: resample(m, p.shape[2:]))
+        self.grid_resolution.fill_(resolution)
 
     @torch.no_grad()
     def update_occupancy(self) -> None:
         """Mark cells whose density would make one marching step at least threshold-opaque."""
-        c = self.config
         centers = cell_centers(self.occupancy.resolution, device=self.box_half.device)
         sigma = self._sigma(centers.reshape(-1, 3) / 2.0).reshape(centers.shape[:-1])
-        step = self.step_size() * contraction_stretch(centers)
-        alpha = 1.0 - torch.exp(-sigma * step)
-        self.occupancy.set(occupied_cells(alpha, c.occupancy_threshold))
+        alpha = 1.0 - torch.exp(-sigma * self.step_size() * contraction_stretch(centers))
+        self.occupancy.set(occupied_cells(alpha, self.config.occupancy_threshold))
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        # A checkpoint may hold grown grids: match their size before copying.
-        key = "density.grid"
-        if key in state_dict and state_dict[key].shape[-1] != self.resolution:
-            self.grow(int(state_dict[key].shape[-1]))
+        # A checkpoint may hold grown grids: take their shapes before copying.
+        for name, param in self.named_parameters():
+            if name in state_dict and state_dict[name].shape != param.shape:
+                param.data = torch.empty_like(state_dict[name], device=param.device)
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
 
 class GridGrowth(Callback):
-    """Grows the grid on the schedule; derives the resolution from the step, so resuming works."""
+    """Grows the grids on the schedule; the resolution follows from the step, so resuming works."""
 
     def __init__(self, field: GridField):
         self.field = field

@@ -68,16 +68,32 @@ def trajectory_extent(centers: np.ndarray) -> float:
     return float(np.sqrt((diff ** 2).sum(-1)).max())
 
 
-def aligned_pose_errors(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> PoseErrors:
-    """Align estimated camera-to-world poses (N, 4, 4) onto the reference by their centres.
+def pose_points(c2w: np.ndarray, arm: float) -> np.ndarray:
+    """Each camera's centre and the tips of its three axes ``arm`` away: (N * 4, 3)."""
+    centers = c2w[:, None, :3, 3]
+    tips = centers + arm * np.transpose(c2w[:, :3, :3], (0, 2, 1))  # rows: x, y, z axes
+    return np.concatenate([centers, tips], 1).reshape(-1, 3)
 
-    Both must use the same camera-axis convention; rotation errors compare the aligned
-    camera orientations R @ R_est with R_ref.
+
+def aligned_pose_errors(est_c2w: np.ndarray, ref_c2w: np.ndarray, axis_arm: float = 0.25) -> PoseErrors:
+    """Align estimated camera-to-world poses (N, 4, 4) onto the reference; measure the errors.
+
+    The similarity is Umeyama's on the camera centres and, with ``axis_arm`` > 0, on the tips
+    of each camera's axes at that fraction of the trajectory extent (in each trajectory's own
+    units, so an exactly similar trajectory still aligns exactly). The centres of a sweep lie
+    near a plane or a line, which leaves the rotation about it loose; the axes pin it. Both
+    poses must use the same camera-axis convention; rotation errors compare R @ R_est with R_ref.
     """
     est_c2w = np.asarray(est_c2w, dtype=np.float64)
     ref_c2w = np.asarray(ref_c2w, dtype=np.float64)
-    scale, rot, trans = umeyama(est_c2w[:, :3, 3], ref_c2w[:, :3, 3])
+    extent = trajectory_extent(ref_c2w[:, :3, 3])
+    if axis_arm > 0:
+        src = pose_points(est_c2w, axis_arm * trajectory_extent(est_c2w[:, :3, 3]))
+        dst = pose_points(ref_c2w, axis_arm * extent)
+    else:
+        src, dst = est_c2w[:, :3, 3], ref_c2w[:, :3, 3]
+    scale, rot, trans = umeyama(src, dst)
     moved = scale * est_c2w[:, :3, 3] @ rot.T + trans
     rmse = float(np.sqrt(((moved - ref_c2w[:, :3, 3]) ** 2).sum(-1).mean()))
     rot_err = rotation_angle_deg(rot[None] @ est_c2w[:, :3, :3], ref_c2w[:, :3, :3])
-    return PoseErrors(rmse, trajectory_extent(ref_c2w[:, :3, 3]), rot_err, scale, rot, trans)
+    return PoseErrors(rmse, extent, rot_err, scale, rot, trans)

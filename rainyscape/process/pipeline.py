@@ -10,21 +10,45 @@ Scene folder layout (the layout 3DGS and nerfstudio tools read too):
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import sys
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Iterator
 
 from rainyscape.errors import DataError
 from rainyscape.process.frames import Frame, FrameOptions, copy_photos, extract_video_frames
-from rainyscape.process.sfm import (Registration, SfmOptions, Stages, check_registration,
+from rainyscape.process.sfm import (Registration, SfmOptions, check_registration,
                                     colmap_log, extract_features, incremental_mapping,
                                     largest_model, match_features, registration_report, undistort)
 from rainyscape.process.writers import write_nerfstudio_files
 
 FINISHED_OUTPUTS = ("images", "sparse", "transforms.json", "sparse_pc.ply", "process_report.json")
 WORK_DIR = "colmap"
+
+
+@dataclass
+class Stages:
+    """Prints one line per stage with its duration; keeps the timings for the report."""
+
+    count: int
+    progress: bool = True
+    timings: dict[str, float] = field(default_factory=dict)
+    _index: int = 0
+
+    @contextlib.contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        self._index += 1
+        if self.progress:
+            print(f"[{self._index}/{self.count}] {name} ...", file=sys.stderr, flush=True)
+        start = time.perf_counter()
+        yield
+        self.timings[name] = round(time.perf_counter() - start, 3)
+        if self.progress:
+            print(f"      {name}: done in {self.timings[name]:.1f} s", file=sys.stderr, flush=True)
 
 
 @dataclass

@@ -13,8 +13,7 @@ import math
 import os
 import shutil
 import sys
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -27,6 +26,8 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 MATCHERS = ("sequential", "exhaustive")
 WARN_FRACTION = 0.8  # fewer registered frames than this fraction: warn
 SMALL_SET = 5  # fewer frames than this: keep points seen by two frames only
+RELAXED_INLIERS = (50, 15)  # initial pair, each new frame (COLMAP's defaults: 100, 30)
+MIN_VOCAB_DESCRIPTORS = 6400  # fewer SIFT descriptors in the clip: no loop detection
 
 
 @dataclass
@@ -40,6 +41,7 @@ class SfmOptions:
     max_features: int = 8192  # SIFT features per image
     min_registered: float = 0.5  # fail when fewer frames than this fraction register
     init_min_tri_angle: float = 16.0  # degrees; lower it for narrow baselines (a stereo pair)
+    relaxed: bool = False  # halve the inlier minimums for registration (heavy rain)
     num_threads: int = -1  # -1: all cores
     seed: int = 0
     verbose: bool = False  # show COLMAP's own log
@@ -90,27 +92,6 @@ class Registration:
                 "unregistered": self.unregistered}
 
 
-@dataclass
-class Stages:
-    """Prints one line per stage with its duration; keeps the timings for the report."""
-
-    count: int
-    progress: bool = True
-    timings: dict[str, float] = field(default_factory=dict)
-    _index: int = 0
-
-    @contextlib.contextmanager
-    def stage(self, name: str) -> Iterator[None]:
-        self._index += 1
-        if self.progress:
-            print(f"[{self._index}/{self.count}] {name} ...", file=sys.stderr, flush=True)
-        start = time.perf_counter()
-        yield
-        self.timings[name] = round(time.perf_counter() - start, 3)
-        if self.progress:
-            print(f"      {name}: done in {self.timings[name]:.1f} s", file=sys.stderr, flush=True)
-
-
 @contextlib.contextmanager
 def colmap_log(verbose: bool) -> Iterator[None]:
     """Silence COLMAP's INFO / WARNING log unless asked for it."""
@@ -152,13 +133,16 @@ def extract_features(database: Path, image_dir: Path, names: list[str], opts: Sf
 
 
 def build_vocab_tree(database: Path, out_path: Path, seed: int, num_threads: int,
-                     max_descriptors: int = 200_000) -> Path:
-    """A small vocabulary tree from the database's own SIFT descriptors (for loop detection)."""
+                     max_descriptors: int = 200_000) -> Path | None:
+    """A small vocabulary tree from the database's own SIFT descriptors (for loop detection);
+    None when the frames have too few features to be worth one."""
     import pycolmap
 
     with pycolmap.Database.open(database) as db:
         descs = [db.read_descriptors(im.image_id).to_float().data for im in db.read_all_images()]
-    data = np.concatenate([d for d in descs if len(d)]) if descs else np.zeros((0, 128), np.float32)
+    data = np.concatenate([d for d in descs if len(d)] or [np.zeros((0, 128), np.float32)])
+    if len(data) < MIN_VOCAB_DESCRIPTORS:
+        return None
     if len(data) > max_descriptors:
         data = data[np.random.default_rng(seed).choice(len(data), max_descriptors, replace=False)]
     index = pycolmap.VisualIndex.create(128, 64)  # SIFT descriptors, 64-d Hamming embedding
@@ -190,9 +174,11 @@ def match_features(database: Path, work_dir: Path, opts: SfmOptions) -> None:
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = opts.overlap
     pairing.num_threads = opts.num_threads
+    tree = None
     if opts.loop_detection:
         tree = Path(opts.vocab_tree) if opts.vocab_tree else build_vocab_tree(
             database, work_dir / "vocab_tree.bin", opts.seed, opts.num_threads)
+    if tree is not None:
         pairing.loop_detection = True
         pairing.vocab_tree_path = tree
         pairing.loop_detection_period = max(1, opts.overlap // 2)
@@ -212,14 +198,18 @@ def incremental_mapping(database: Path, image_dir: Path, out_dir: Path, opts: Sf
     pipeline.min_model_size = min(pipeline.min_model_size, max(2, total // 2))
     pipeline.extract_colors = True
     pipeline.mapper.init_min_tri_angle = opts.init_min_tri_angle
+    if opts.relaxed:  # rain streaks cost inliers; COLMAP's minimums were set for clear photos
+        pipeline.mapper.init_min_num_inliers = RELAXED_INLIERS[0]
+        pipeline.mapper.abs_pose_min_num_inliers = RELAXED_INLIERS[1]
     # In a handful of photos most points are seen twice only; COLMAP's default drops those.
     pipeline.triangulation.ignore_two_view_tracks = total >= SMALL_SET
     out_dir.mkdir(parents=True, exist_ok=True)
     bar = tqdm(total=total, desc="registering", unit="frame", disable=not progress)
-    bar.update(2)  # the initial pair; the callback fires for each later frame
-    try:
+    try:  # the callback fires as each frame after the initial pair is tried
         models = pycolmap.incremental_mapping(database, image_dir, out_dir, pipeline,
                                               next_image_callback=lambda: bar.update(1))
+        bar.n = max((m.num_reg_images() for m in models.values()), default=0)
+        bar.refresh()
     finally:
         bar.close()
     return dict(models)
@@ -255,12 +245,22 @@ def check_registration(report: Registration, opts: SfmOptions, source: Path) -> 
         raise DataError(
             f"{source}: SfM registered only {len(report.registered)} of {report.total} frames "
             f"(at least {need} needed, --min-registered {opts.min_registered}); "
-            "try more frames, more overlap (--overlap) or --matcher exhaustive")
+            f"{_remedies(opts)}")
     if report.fraction < WARN_FRACTION:
         return (f"warning: only {100 * report.fraction:.0f} % of the frames registered "
                 f"({len(report.registered)}/{report.total}); unregistered: "
-                f"{', '.join(report.unregistered[:8])}{' ...' if len(report.unregistered) > 8 else ''}")
+                f"{', '.join(report.unregistered[:8])}{' ...' if len(report.unregistered) > 8 else ''}"
+                f"; {_remedies(opts)}")
     return None
+
+
+def _remedies(opts: SfmOptions) -> str:
+    tips = ["more frames or photos, closer together (--num-frames for a video)"]
+    if opts.matcher == "sequential":
+        tips.append("--matcher exhaustive")
+    if not opts.relaxed:
+        tips.append("--relax-registration for heavy rain")
+    return "try " + ", ".join(tips)
 
 
 def undistort(model_dir: Path, image_dir: Path, scene_dir: Path, num_threads: int) -> None:

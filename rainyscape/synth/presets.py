@@ -19,7 +19,7 @@ class Preset:
 
 PRESETS: dict[str, Preset] = {p.name: p for p in [
     Preset("demo", "street", "street corner, medium rain slanted by a light wind (the embedded demo)",
-           {"density": 35.0, "wind_deg": 12.0, "wind_azimuth_deg": 20.0}, rows=3, cols=8, width=192, height=192),
+           {"density": 27.0, "wind_deg": 12.0, "wind_azimuth_deg": 20.0}, rows=3, cols=8, width=192, height=192),
     Preset("yard", "yard", "house, fence and garden, light vertical drizzle",
            {"density": 28.0, "rain_rate_mm_h": 3.0, "opacity": 0.6}),
     Preset("street", "street", "street with shops, cars and lamps, heavy wind-driven rain",

@@ -14,7 +14,7 @@ field at time k / fps (drops wrap around the field's box, so the density stays c
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -22,34 +22,7 @@ from torch import Tensor
 
 from rainyscape.cameras import Cameras
 from rainyscape.errors import ConfigError
-
-
-@dataclass
-class RainConfig:
-    density: float = 20.0  # drops per cubic metre (of radius_min .. radius_max)
-    rain_rate_mm_h: float = 10.0  # sets the Marshall-Palmer slope: heavier rain, bigger drops
-    radius_min_mm: float = 0.5
-    radius_max_mm: float = 3.0
-    wind_deg: float = 0.0  # fall direction's angle from vertical (for a median drop)
-    wind_azimuth_deg: float = 0.0  # horizontal wind direction: 0 = +X, 90 = +Z
-    wind2_deg: float = 0.0  # second rain direction (a mixture) ...
-    wind2_azimuth_deg: float = 180.0
-    mix: float = 0.0  # ... taken by this fraction of the drops (0: one direction)
-    jitter: float = 0.08  # per-drop relative velocity noise
-    exposure_s: float = 1.0 / 30.0
-    brightness: float = 1.15  # drop radiance relative to the mean sky
-    opacity: float = 0.8  # peak alpha of an in-focus streak at least one pixel wide
-    size_scale: float = 3.0  # drawn radius / physical radius
-    f_number: float = 2.8  # defocus of drops off the focus plane (the look-at point)
-    near_clip: float = 0.3  # metres: drops closer to the lens are not drawn
-    fps: float = 24.0  # dynamic mode: time between frames is 1 / fps
-
-    @classmethod
-    def keys(cls) -> list[str]:
-        return [f.name for f in fields(cls)]
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+from rainyscape.synth.params import RainConfig
 
 
 def terminal_velocity(radius_m: np.ndarray) -> np.ndarray:
@@ -178,69 +151,85 @@ def render_rain(drops: DropField, cameras: Cameras, index: int, depth: np.ndarra
     coc = fx * aperture * np.abs(1.0 / z_mid - 1.0 / focus_distance)  # blur circle, pixels
     w_eff = np.sqrt(width ** 2 + coc ** 2)
     w_draw = np.maximum(w_eff, 1.0)
-    # Defocus spreads a streak's light over w_draw (peak falls as width / w_draw). A streak
-    # narrower than a pixel fades with its area, (width)^2: it covers that fraction of the
-    # pixel's width for that fraction of the time the pixel sees it (time-integrated coverage).
-    peak = cfg.opacity * np.minimum(width, 1.0) * width / w_draw
+    # Defocus spreads a streak's light over w_draw (peak falls as width / w_draw; a streak
+    # under a pixel wide covers that fraction of it). Streaks narrower than ``faint_width``
+    # of the image also fade in proportion (time-integrated coverage of a tiny drop), so far
+    # drops make a faint haze and near ones clear streaks. Measuring that threshold as a
+    # fraction of the view, not in pixels, keeps the rain's strength independent of the
+    # image resolution.
+    faint = np.minimum(1.0, width / (cfg.faint_width * w))
+    peak = cfg.opacity * faint * width / w_draw
     soft = 0.5 + coc / 4
     reach = w_draw / 2 + soft
     x0 = np.floor(np.minimum(ua, ub) - reach).clip(0, w)
     x1 = np.ceil(np.maximum(ua, ub) + reach).clip(0, w)
     y0 = np.floor(np.minimum(va, vb) - reach).clip(0, h)
     y1 = np.ceil(np.maximum(va, vb) + reach).clip(0, h)
-    visible = (x1 > x0) & (y1 > y0) & (peak > 3e-3)  # fainter: below one grey level
-    sel = np.flatnonzero(visible)
-    dev = torch.device("cpu")
-    t = lambda x: torch.as_tensor(np.ascontiguousarray(x[sel]), dtype=torch.float32, device=dev)  # noqa: E731
-    ua_t, va_t, ub_t, vb_t = t(ua), t(va), t(ub), t(vb)
-    za_t, zb_t = t(a[:, 2]), t(b[:, 2])
-    half_t, soft_t, peak_t = t(w_draw / 2), t(soft), t(peak)
-    tint_t = t(tint)
-    x0_t, y0_t = t(x0).long(), t(y0).long()
-    bw_t, bh_t = (t(x1) - t(x0)).long(), (t(y1) - t(y0)).long()
+    visible = np.flatnonzero((x1 > x0) & (y1 > y0) & (peak > 3e-3))  # fainter: below a grey level
+
+    def t(x: np.ndarray) -> Tensor:
+        return torch.as_tensor(np.ascontiguousarray(x[visible]), dtype=torch.float32)
+
+    streaks = Streaks(t(ua), t(va), t(ub), t(vb), t(a[:, 2]), t(b[:, 2]), t(w_draw / 2), t(soft),
+                      t(peak), t(tint), t(x0).long(), t(y0).long(), t(x1 - x0).long(), t(y1 - y0).long())
     depth_t = torch.as_tensor(depth, dtype=torch.float32).reshape(-1)
-    log_t = torch.zeros(h * w, dtype=torch.float64)
-    wsum = torch.zeros(h * w, dtype=torch.float64)
-    tsum = torch.zeros(h * w, dtype=torch.float64)
-    counts = bw_t * bh_t
-    cum = torch.cumsum(counts, 0)
+    acc = torch.zeros(3, h * w, dtype=torch.float64)  # sum log(1 - a), sum a, sum a * tint
+    cum = torch.cumsum(streaks.bw * streaks.bh, 0)
     first = 0
-    while first < len(sel):  # chunks bound the memory of the per-pixel candidates
+    while first < len(visible):  # chunks bound the memory of the per-pixel candidates
         base = int(cum[first - 1]) if first else 0
         last = int(torch.searchsorted(cum, torch.tensor(base + max_candidates), right=True))
         last = max(last, first + 1)
-        idx = torch.arange(first, last)
-        _splat(idx, counts, ua_t, va_t, ub_t, vb_t, za_t, zb_t, half_t, soft_t, peak_t, tint_t,
-               x0_t, y0_t, bw_t, w, depth_t, log_t, wsum, tsum)
+        streaks.splat(torch.arange(first, last), depth_t, w, acc)
         first = last
-    alpha = (1.0 - torch.exp(log_t)).reshape(h, w).numpy()
-    mean_tint = (tsum / wsum.clamp_min(1e-12)).reshape(h, w).numpy()
+    alpha = (1.0 - torch.exp(acc[0])).reshape(h, w).numpy()
+    mean_tint = (acc[2] / acc[1].clamp_min(1e-12)).reshape(h, w).numpy()
     color = np.clip(drop_rgb[None, None] * mean_tint[..., None], 0, 1)
     color[alpha <= 0] = 0
-    return RainLayer(alpha.astype(np.float64), color)
+    return RainLayer(alpha, color)
 
 
-def _splat(idx: Tensor, counts: Tensor, ua: Tensor, va: Tensor, ub: Tensor, vb: Tensor, za: Tensor,
-           zb: Tensor, half: Tensor, soft: Tensor, peak: Tensor, tint: Tensor, x0: Tensor, y0: Tensor,
-           bw: Tensor, width: int, depth: Tensor, log_t: Tensor, wsum: Tensor, tsum: Tensor) -> None:
-    """Accumulate the streaks of drops ``idx``: every pixel of each drop's bounding box."""
-    n = counts[idx]
-    drop = torch.repeat_interleave(idx, n)
-    offsets = torch.cumsum(n, 0) - n
-    local = torch.arange(int(n.sum())) - torch.repeat_interleave(offsets, n)
-    px = x0[drop] + local % bw[drop]
-    py = y0[drop] + torch.div(local, bw[drop], rounding_mode="floor")
-    # closest point of the segment to the pixel centre
-    ex, ey = ub[drop] - ua[drop], vb[drop] - va[drop]
-    qx, qy = px.float() + 0.5 - ua[drop], py.float() + 0.5 - va[drop]
-    tau = ((qx * ex + qy * ey) / (ex * ex + ey * ey).clamp_min(1e-9)).clamp(0, 1)
-    dist = torch.hypot(qx - tau * ex, qy - tau * ey)
-    cover = ((half[drop] - dist) / (2 * soft[drop]) + 0.5).clamp(0, 1)
-    a = peak[drop] * cover
-    z = 1.0 / ((1 - tau) / za[drop] + tau / zb[drop])  # perspective-correct depth on the streak
-    pix = py * width + px
-    ok = (a > 1e-3) & (z < depth[pix])
-    a, pix, t = a[ok].double().clamp(max=0.995), pix[ok], tint[drop][ok].double()
-    log_t.index_add_(0, pix, torch.log1p(-a))
-    wsum.index_add_(0, pix, a)
-    tsum.index_add_(0, pix, a * t)
+@dataclass
+class Streaks:
+    """One view's projected streaks, one entry per drop: endpoints (pixels), endpoint depths,
+    half width, edge softness, peak alpha, brightness and the integer bounding box."""
+
+    ua: Tensor
+    va: Tensor
+    ub: Tensor
+    vb: Tensor
+    za: Tensor
+    zb: Tensor
+    half: Tensor
+    soft: Tensor
+    peak: Tensor
+    tint: Tensor
+    x0: Tensor
+    y0: Tensor
+    bw: Tensor
+    bh: Tensor
+
+    def splat(self, idx: Tensor, depth: Tensor, width: int, acc: Tensor) -> None:
+        """Add drops ``idx`` to ``acc`` over every pixel of their bounding boxes."""
+        n = self.bw[idx] * self.bh[idx]
+        drop = torch.repeat_interleave(idx, n)
+        offsets = torch.cumsum(n, 0) - n
+        local = torch.arange(int(n.sum())) - torch.repeat_interleave(offsets, n)
+        bw = self.bw[drop]
+        px = self.x0[drop] + local % bw
+        py = self.y0[drop] + torch.div(local, bw, rounding_mode="floor")
+        # closest point of the segment to the pixel centre
+        ua, va = self.ua[drop], self.va[drop]
+        ex, ey = self.ub[drop] - ua, self.vb[drop] - va
+        qx, qy = px.float() + 0.5 - ua, py.float() + 0.5 - va
+        tau = ((qx * ex + qy * ey) / (ex * ex + ey * ey).clamp_min(1e-9)).clamp(0, 1)
+        dist = torch.hypot(qx - tau * ex, qy - tau * ey)
+        cover = ((self.half[drop] - dist) / (2 * self.soft[drop]) + 0.5).clamp(0, 1)
+        a = self.peak[drop] * cover
+        z = 1.0 / ((1 - tau) / self.za[drop] + tau / self.zb[drop])  # perspective-correct depth
+        pix = py * width + px
+        ok = (a > 1e-3) & (z < depth[pix])
+        a, pix = a[ok].double().clamp(max=0.995), pix[ok]
+        acc[0].index_add_(0, pix, torch.log1p(-a))
+        acc[1].index_add_(0, pix, a)
+        acc[2].index_add_(0, pix, a * self.tint[drop][ok].double())

@@ -16,13 +16,12 @@ from rainyscape.errors import ConfigError, DataError
 from rainyscape.eval.metrics import psnr, ssim
 from rainyscape.synth import layout
 from rainyscape.synth.presets import PRESETS
-from rainyscape.synth.rain import RainConfig, make_drop_field, render_rain
+from rainyscape.synth.params import SIM_VERSION, RainConfig
+from rainyscape.synth.rain import make_drop_field, render_rain
 from rainyscape.synth.render import SceneRenderer
 from rainyscape.synth.rig import make_rig
 from rainyscape.synth.scenes import build_scene
 
-# Bump when the simulator's output changes: cached demo scenes are keyed by it.
-SIM_VERSION = "1"
 MODES = ("static", "dynamic")
 TRAJECTORIES = ("sphere", "video")
 
@@ -170,7 +169,7 @@ def generate(out_dir: str | Path, preset: str = "demo", rows: int | None = None,
              progress=None, workers: int | None = None, **rain_overrides) -> Path:
     """Simulate a rainy multi-view scene into ``out_dir`` (the Maya layout; docs/data.md).
 
-    ``rain_overrides`` are :class:`~rainyscape.synth.rain.RainConfig` fields (density,
+    ``rain_overrides`` are :class:`~rainyscape.synth.params.RainConfig` fields (density,
     wind_deg, ...). ``progress`` is called as progress(done, total) after each view.
     ``workers``: processes rendering views (None: one for small jobs, else every core).
     Returns the folder. Refuses a non-empty folder unless ``force``.

@@ -98,9 +98,10 @@ def _chunk_alpha(means2d, conics, opacities, gid, slot_ok, origin, centres):
     transmittance scans run along it, which is much faster than along a middle axis."""
     a, k = gid.shape
     s = len(centres)
-    mean = (means2d[gid] - origin[:, None]).transpose(1, 2)  # (A, 2, K)
-    con = conics[gid].transpose(1, 2)  # (A, 3, K)
-    op = opacities[gid] * slot_ok  # (A, K); empty slots get opacity 0
+    flat = gid.reshape(-1)
+    mean = (means2d.index_select(0, flat).view(a, k, 2) - origin[:, None]).transpose(1, 2)
+    con = conics.index_select(0, flat).view(a, k, 3).transpose(1, 2)  # (A, 3, K)
+    op = opacities.index_select(0, flat).view(a, k) * slot_ok  # empty slots: opacity 0
     dx = mean[:, 0, None] - centres[:, None]  # (A, s, K): to each pixel column
     dy = mean[:, 1, None] - centres[:, None]  # (A, s, K): to each pixel row
     # -sigma = -(a dx^2 / 2 + c dy^2 / 2 + b dx dy): two separable terms and an outer product
@@ -165,25 +166,29 @@ def _sweep(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
     for block in busy.split(max_tiles):
         active, start = block, 0
         while len(active):
+            a = len(active)
             slot = start + slot_range
-            slot_ok = slot[None] < binning.tile_count[active, None]  # (A, K)
-            gid = ids_all[(binning.tile_start[active, None] + slot).clamp(max=last)]
+            count = binning.tile_count.index_select(0, active)
+            slot_ok = slot[None] < count[:, None]  # (A, K)
+            pos = (binning.tile_start.index_select(0, active)[:, None] + slot).clamp(max=last)
+            gid = ids_all.index_select(0, pos.reshape(-1)).view(a, SLOTS)
             alpha, raw, op, con, dx, dy = _chunk_alpha(means2d, conics, opacities, gid, slot_ok,
-                                                       origin[active], centres)
-            t_start = trans[active]
+                                                       origin.index_select(0, active), centres)
+            t_start = trans.index_select(0, active)
             t_incl, weight, keep = _transmittance(alpha, t_start)
-            feat_t = feats[gid].transpose(1, 2)  # (A, D + 1, K)
+            flat = gid.reshape(-1)  # empty slots point at a real Gaussian, with zero gradient
+            feat_t = feats.index_select(0, flat).view(a, SLOTS, d1).transpose(1, 2)  # (A, D+1, K)
             if upstream is None:
-                acc[active] += torch.bmm(feat_t, weight.transpose(1, 2))
+                acc.index_add_(0, active, torch.bmm(feat_t, weight.transpose(1, 2)))
             else:
-                g = g_out[active]  # (A, D + 1, P)
+                g = g_out.index_select(0, active)  # (A, D + 1, P)
                 g_dot_f = torch.bmm(g.transpose(1, 2), feat_t)  # (A, P, K)
                 run = weight * g_dot_f
-                run[..., 0] += prefix[active]
+                run[..., 0] += prefix.index_select(0, active)
                 run = torch.cumsum(run, -1)
-                prefix[active] = run[..., -1]
+                prefix.index_copy_(0, active, run[..., -1])
                 # dL/dalpha_k = (T_after_k (g . f_k) - sum_{j > k} w_j (g . f_j)) / (1 - alpha_k)
-                g_alpha = (t_incl * g_dot_f).sub_(total[active][..., None]).add_(run)
+                g_alpha = (t_incl * g_dot_f).sub_(total.index_select(0, active)[..., None]).add_(run)
                 g_alpha.div_(torch.rsub(alpha, 1.0))
                 if keep is not None:
                     g_alpha.mul_(keep)
@@ -191,7 +196,7 @@ def _sweep(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
                 live = raw * ((alpha > 0) & (alpha < MAX_ALPHA))
                 g_neg_sigma = g_alpha.mul_(live)  # dL/d(-sigma) = dL/dalpha * alpha
                 grad_o = g_neg_sigma.sum(1) / op.clamp_min(1e-30)  # (A, K)
-                gs = g_neg_sigma.reshape(len(active), s, s, SLOTS)  # rows, columns, slots
+                gs = g_neg_sigma.reshape(a, s, s, SLOTS)  # rows, columns, slots
                 col_sum, row_sum = gs.sum(1), gs.sum(2)  # (A, s, K)
                 row_dx = (gs * dx[:, None]).sum(2)  # per row: sum over columns of g dx
                 sx, sy = (col_sum * dx).sum(1), (row_sum * dy).sum(1)
@@ -202,19 +207,17 @@ def _sweep(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
                 gm = -torch.stack([ca * sx + cb * sy, cb * sx + cc * sy], -1)
                 gc = -torch.stack([0.5 * sxx, sxy, 0.5 * syy], -1)
                 gf = torch.bmm(g[:, :-1], weight).transpose(1, 2)  # (A, K, D)
-                sel = slot_ok.reshape(-1)
-                flat = gid.reshape(-1)[sel]
-                grad_mean.index_add_(0, flat, gm.reshape(-1, 2)[sel])
-                grad_conic.index_add_(0, flat, gc.reshape(-1, 3)[sel])
-                grad_opac.index_add_(0, flat, grad_o.reshape(-1)[sel])
-                grad_feat.index_add_(0, flat, gf.reshape(-1, d1 - 1)[sel])
+                grad_mean.index_add_(0, flat, gm.reshape(-1, 2))
+                grad_conic.index_add_(0, flat, gc.reshape(-1, 3))
+                grad_opac.index_add_(0, flat, grad_o.reshape(-1))
+                grad_feat.index_add_(0, flat, gf.reshape(-1, d1 - 1))
             if keep is None:
                 t_end = t_incl[..., -1]
             else:
                 t_end = (t_start - weight.sum(-1)) * keep[..., -1]
-            trans[active] = t_end
+            trans.index_copy_(0, active, t_end)
             start += SLOTS
-            active = active[(binning.tile_count[active] > start) & (t_end > 0).any(1)]
+            active = active[(count > start) & (t_end > 0).any(1)]
     if upstream is None:
         return acc
     return grad_mean, grad_conic, grad_opac, grad_feat
@@ -251,6 +254,7 @@ def composite(proj: Projection, features: Tensor, width: int, height: int,
     binning = bin_gaussians(proj, width, height, tile_size)
     out = _CompositeTiles.apply(
         proj.means2d.reshape(c * n, 2), proj.conics.reshape(c * n, 3),
-        proj.opacities.reshape(c * n), features.reshape(c * n, -1), binning, width, height)
+        proj.opacities.reshape(c * n), features.reshape(c * n, features.shape[-1]), binning,
+        width, height)
     out = _untile(out, c, binning, width, height)
     return out[..., :-1], out[..., -1:]

@@ -1,0 +1,266 @@
+"""GaussianField: 3D Gaussian Splatting behind the Field interface.
+
+Parameters (one optimiser each, named as in gsplat): ``means``, ``scales`` (log),
+``quats`` (w x y z), ``opacities`` (logit), ``sh0`` and ``shN`` (spherical harmonics up
+to ``sh_degree``). Initialised from the scene's sparse points when it has them (COLMAP,
+simulator depth), else uniformly in the scene box. The training schedule (SH degree,
+densification, position learning-rate decay) is the 3DGS paper's 30k-step one, scaled
+to ``trainer.max_iters``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from rainyscape.cameras import Cameras, Window
+from rainyscape.components import Callback, Field, ParamGroup, RenderOutput, TrainState
+from rainyscape.errors import ConfigError
+from rainyscape.fields.gaussians.densify import Densifier, DensifySchedule
+from rainyscape.fields.gaussians.ply import write_ply
+from rainyscape.fields.gaussians.rasterize import BACKENDS, rasterize
+from rainyscape.fields.gaussians.sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh0, sh_to_rgb
+from rainyscape.scene import SceneData
+
+PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
+
+
+def scene_extent(cameras: Cameras) -> float:
+    """3DGS's scene scale: 1.1 x the largest camera distance from the cameras' centroid."""
+    centers = cameras.centers.double()
+    return float(1.1 * (centers - centers.mean(0)).norm(dim=-1).max().clamp_min(1e-6))
+
+
+def nearest_neighbour_scale(points: Tensor, k: int = 3) -> Tensor:
+    """Mean distance from each point to its k nearest others (3DGS's initial scale)."""
+    from scipy.spatial import cKDTree
+
+    pts = points.double().cpu().numpy()
+    if len(pts) <= 1:
+        return torch.full((len(pts),), 0.01)
+    k = min(k, len(pts) - 1)
+    dist, _ = cKDTree(pts).query(pts, k=k + 1)
+    d = torch.from_numpy(dist[:, 1:]).float()
+    return torch.sqrt((d ** 2).mean(-1)).clamp_min(1e-7)
+
+
+class GaussianField(Field):
+    """3D Gaussian Splatting (tiled torch rasteriser on CPU, gsplat on CUDA)."""
+
+    description = "3D Gaussian Splatting: torch tiled rasteriser on CPU, gsplat on CUDA"
+
+    @dataclass
+    class Config:
+        sh_degree: int = 3
+        init_points: int = 100_000  # at most this many of the scene's sparse points (random subset)
+        random_points: int = 20_000  # Gaussians drawn in the scene box when it has no points
+        init_opacity: float = 0.1
+        background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        backend: str = "auto"  # auto (gsplat on CUDA when installed) | torch | gsplat
+        eps2d: float = 0.3  # screen-space dilation (pixels^2) of every projected Gaussian
+        near_plane: float = 0.01
+        # Learning rates (3DGS); the means' lr is times the scene extent and decays to
+        # lr_means_final over the run.
+        lr_means: float = 1.6e-4
+        lr_means_final: float = 1.6e-6
+        lr_scales: float = 5e-3
+        lr_quats: float = 1e-3
+        lr_opacities: float = 5e-2
+        lr_sh0: float = 2.5e-3
+        lr_shN: float = 2.5e-3 / 20
+        # Schedule in steps of a reference_iters run, stretched to trainer.max_iters.
+        reference_iters: int = 30_000
+        sh_degree_every: int = 1000
+        refine_start: int = 500
+        refine_stop: int = 15_000
+        refine_every: int = 100
+        reset_every: int = 3000
+        grow_grad2d: float = 2e-4
+        grow_scale3d: float = 0.01
+        prune_opacity: float = 0.005
+        prune_scale3d: float = 0.1
+        max_gaussians: int = 0  # growth stops at this many (0: no limit)
+        seed: int = 0  # initial subset / random Gaussians
+
+    def __init__(self, config: "GaussianField.Config | None", scene: SceneData):
+        super().__init__()
+        self.config = c = config or self.Config()
+        if not 0 <= c.sh_degree <= MAX_SH_DEGREE:
+            raise ConfigError(f"field.sh_degree must be 0..{MAX_SH_DEGREE}, got {c.sh_degree}")
+        if c.backend not in BACKENDS:
+            raise ConfigError(f"field.backend must be one of {', '.join(BACKENDS)}, got '{c.backend}'")
+        if len(c.background) != 3:
+            raise ConfigError("field.background needs three values (r, g, b)")
+        self.width, self.height = scene.width, scene.height
+        self.extent = scene_extent(scene.cameras[scene.train_indices or list(range(scene.num_images))])
+        self.transform, self.world_scale = scene.transform.clone(), float(scene.scale)
+        self.params = nn.ParameterDict(self._initial_params(scene))
+        self.register_buffer("background", torch.tensor(c.background, dtype=torch.float32))
+        self.register_buffer("active_sh_degree", torch.zeros((), dtype=torch.long))
+        self._groups: dict[str, ParamGroup] = {}
+
+    # ------------------------------------------------------------------ set-up
+
+    def _initial_params(self, scene: SceneData) -> dict[str, nn.Parameter]:
+        c = self.config
+        gen = torch.Generator().manual_seed(c.seed)
+        if scene.points is not None and len(scene.points) > 0:
+            points = scene.points.float()
+            colors = (scene.point_colors.float() / 255.0 if scene.point_colors is not None
+                      else torch.full_like(points, 0.5))
+            if len(points) > c.init_points:
+                pick = torch.randperm(len(points), generator=gen)[: c.init_points]
+                points, colors = points[pick], colors[pick]
+        else:
+            lo, hi = scene.scene_box[0].float(), scene.scene_box[1].float()
+            points = lo + (hi - lo) * torch.rand(c.random_points, 3, generator=gen)
+            colors = torch.rand(c.random_points, 3, generator=gen)
+        n = len(points)
+        quats = torch.zeros(n, 4)
+        quats[:, 0] = 1.0
+        return {
+            "means": nn.Parameter(points),
+            "scales": nn.Parameter(torch.log(nearest_neighbour_scale(points))[:, None].repeat(1, 3)),
+            "quats": nn.Parameter(quats),
+            "opacities": nn.Parameter(torch.full((n,), math.log(c.init_opacity / (1 - c.init_opacity)))),
+            "sh0": nn.Parameter(rgb_to_sh0(colors)[:, None]),
+            "shN": nn.Parameter(torch.zeros(n, num_sh_bases(c.sh_degree) - 1, 3)),
+        }
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.params["means"].shape[0]
+
+    def param_groups(self) -> list[ParamGroup]:
+        c = self.config
+        lrs = {"means": c.lr_means * self.extent, "scales": c.lr_scales, "quats": c.lr_quats,
+               "opacities": c.lr_opacities, "sh0": c.lr_sh0, "shN": c.lr_shN}
+        self._groups = {name: ParamGroup(name, [self.params[name]], lr, eps=1e-15)
+                        for name, lr in lrs.items()}
+        # The decay length is the run length, set by the training callback once it is known.
+        self._groups["means"].lr_decay = c.lr_means_final / c.lr_means
+        return list(self._groups.values())
+
+    def sync_param_groups(self) -> None:
+        """Point the ParamGroups handed to the trainer at the current tensors."""
+        for name, group in self._groups.items():
+            group.params = [self.params[name]]
+
+    def callbacks(self) -> list[Callback]:
+        return [GaussianTraining(self)]
+
+    def schedule(self, max_iters: int) -> DensifySchedule:
+        c = self.config
+        return DensifySchedule.scaled(max_iters, c.reference_iters, c.refine_start, c.refine_stop,
+                                      c.refine_every, c.reset_every, c.sh_degree_every)
+
+    # ---------------------------------------------------------------- render
+
+    def render(self, cameras: Cameras, window: Window) -> RenderOutput:
+        p = self.params
+        means = p["means"]
+        dirs = torch.nn.functional.normalize(means[None] - cameras.centers[:, None], dim=-1)
+        coeffs = torch.cat([p["sh0"], p["shN"]], 1)
+        colors = sh_to_rgb(coeffs, dirs, min(int(self.active_sh_degree), self.config.sh_degree))
+        out = rasterize(means, p["quats"], p["scales"].exp(), torch.sigmoid(p["opacities"]), colors,
+                        cameras.w2c(), cameras.K(), self.width, self.height, window,
+                        backgrounds=self.background, near_plane=self.config.near_plane,
+                        eps2d=self.config.eps2d, backend=self.config.backend)
+        if self.training and out.means2d.requires_grad:
+            out.means2d.retain_grad()  # densification reads its gradient
+        return RenderOutput(
+            rgb=out.rgb.permute(0, 3, 1, 2), depth=out.depth.permute(0, 3, 1, 2),
+            acc=out.alpha.permute(0, 3, 1, 2),
+            extras={"means2d": out.means2d, "radii": out.radii,
+                    "image_size": (self.width, self.height),
+                    "window_size": (window.width, window.height)})
+
+    # ------------------------------------------------------------ persistence
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Accepts any number of Gaussians (densification changes it during training)."""
+        for name in PARAM_NAMES:
+            key = f"params.{name}"
+            if key in state_dict and state_dict[key].shape != self.params[name].shape:
+                self.params[name] = nn.Parameter(torch.empty_like(state_dict[key], device=self.params[name].device))
+        result = super().load_state_dict(state_dict, strict=strict, assign=assign)
+        self.sync_param_groups()
+        return result
+
+    @torch.no_grad()
+    def export_ply(self, path: Path) -> None:
+        """The standard 3DGS ``.ply``, in the input's world frame (undoes the dataparser's
+        normalised = scale * (transform @ x))."""
+        rot = self.transform[:3, :3]
+        if not torch.allclose(rot, torch.eye(3), atol=1e-6):
+            raise ConfigError("export_ply: the scene's normalisation rotates the world; rotating "
+                              "spherical harmonics is not supported")
+        p = {k: v.detach().cpu() for k, v in self.params.items()}
+        means = p["means"] / self.world_scale - self.transform[:3, 3]
+        write_ply(path, means, p["scales"] - math.log(self.world_scale), p["quats"],
+                  p["opacities"], p["sh0"], p["shN"])
+
+
+class GaussianTraining(Callback):
+    """The 3DGS schedule: SH degree, position lr decay, densification, opacity reset."""
+
+    def __init__(self, field: GaussianField):
+        self.field = field
+        c = field.config
+        self.densifier = Densifier(c.grow_grad2d, c.grow_scale3d, c.prune_opacity,
+                                   c.prune_scale3d, c.max_gaussians, field.extent)
+        self.last_stats: dict[str, int] = {}
+
+    def before_step(self, state: TrainState) -> None:
+        f = self.field
+        sched = f.schedule(state.max_iters)
+        f.active_sh_degree.fill_(min(f.config.sh_degree, (state.step + 1) // sched.sh_every))
+        group = f._groups.get("means")
+        if group is not None and "means" in state.optimizers:
+            # The trainer set this step's lr before the run length reached us: set it again.
+            group.lr_decay_steps = state.max_iters
+            lr = group.lr * group.lr_decay ** (state.step / state.max_iters)
+            state.optimizers["means"].param_groups[0]["lr"] = lr
+
+    def after_backward(self, state: TrainState, output: RenderOutput) -> None:
+        sched = self.field.schedule(state.max_iters)
+        means2d = output.extras.get("means2d")
+        if state.step + 1 >= sched.stop or means2d is None or means2d.grad is None:
+            return
+        (width, height), (w, h) = output.extras["image_size"], output.extras["window_size"]
+        # Pixel gradients of a batch of C windows with a mean loss -> the 3DGS statistic:
+        # NDC of one full image whose loss is a mean over all its pixels.
+        c = means2d.shape[0]
+        area = c * w * h / (width * height)
+        scale = torch.tensor([width / 2 * area, height / 2 * area], device=means2d.device)
+        self.densifier.accumulate(means2d.grad, output.extras["radii"], scale)
+
+    def after_step(self, state: TrainState) -> None:
+        sched = self.field.schedule(state.max_iters)
+        it = state.step + 1
+        if it >= sched.stop:
+            return
+        params, opts = self.field.params, state.optimizers
+        changed = False
+        if it > sched.start and it % sched.every == 0:
+            n_clone, n_split = self.densifier.grow(params, opts)
+            n_prune = self.densifier.prune(params, opts, prune_large=it > sched.reset_every)
+            self.densifier.reset_stats()
+            self.last_stats = {"cloned": n_clone, "split": n_split, "pruned": n_prune,
+                               "gaussians": self.field.num_gaussians}
+            changed = True
+        if it % sched.reset_every == 0:
+            self.densifier.reset_opacity(params, opts, 2 * self.field.config.prune_opacity)
+            changed = True
+        if changed:
+            self.field.sync_param_groups()
+
+    def state_dict(self) -> dict:
+        return self.densifier.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.densifier.load_state_dict(state)

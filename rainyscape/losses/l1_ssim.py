@@ -1,0 +1,50 @@
+"""3DGS's photometric loss: (1 - w) L1 + w (1 - SSIM), w = 0.2.
+
+With ``with_rain`` it compares B + R (render plus predicted rain) with the rainy input,
+and ``render_l1`` adds (1 - w) L1(B, I): the loss the Gaussians get in the authors'
+RainyScape-3DGS (0.8 [L1(B + R, I) + L1(B, I)] + 0.2 (1 - SSIM(B + R, I)); the method
+config stops its gradient into R with ``detach = "rain"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import Tensor
+
+from rainyscape.components import Loss, LossContext
+from rainyscape.errors import ConfigError
+from rainyscape.eval.metrics import ssim
+
+
+class L1SSIM(Loss):
+    """(1 - w) L1 + w D-SSIM of the render (optionally render + rain) against the input."""
+
+    description = "3DGS loss: 0.8 L1 + 0.2 D-SSIM vs the rainy input (optionally of B + R)"
+    phases = ("warmup", "joint")
+
+    @dataclass
+    class Config:
+        ssim_weight: float = 0.2  # w: the D-SSIM share (3DGS's lambda_dssim)
+        with_rain: bool = False  # compare B + R with I when a rain map is present
+        render_l1: bool = False  # add (1 - w) L1(B, I) to the B + R terms (authors' 3DGS code)
+
+    def __init__(self, config: "L1SSIM.Config | None" = None):
+        super().__init__(config or self.Config())
+        if not 0.0 <= self.config.ssim_weight <= 1.0:
+            raise ConfigError(f"l1-ssim: ssim_weight must be in [0, 1], got {self.config.ssim_weight}")
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        w = self.config.ssim_weight
+        use_rain = self.config.with_rain and ctx.rain is not None
+        pred = ctx.rendered + ctx.rain if use_rain else ctx.rendered
+        l1 = (pred - ctx.target).abs().mean()
+        loss = (1.0 - w) * l1
+        self.metrics = {"l1": float(l1.detach())}
+        if w > 0:
+            s = ssim(pred, ctx.target, padding="same")
+            loss = loss + w * (1.0 - s)
+            self.metrics["ssim"] = float(s.detach())
+        if use_rain and self.config.render_l1:
+            loss = loss + (1.0 - w) * (ctx.rendered - ctx.target).abs().mean()
+        return loss

@@ -1,0 +1,77 @@
+"""Volume-rendering quadrature against closed forms."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from rainyscape.fields.rendering import FAR_DELTA, composite, compositing_weights, sample_deltas
+
+SIGMA, A, B = 1.7, 1.0, 2.5  # a constant-density slab [A, B)
+COLOR = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+BACKGROUND = torch.tensor([1.0, 0.0, 0.3], dtype=torch.float64)
+
+
+def slab_samples(count: int, far: float = 4.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Samples (interval starts) over [0, far] and their densities: sigma inside the slab."""
+    t = torch.linspace(0.0, far, count + 1, dtype=torch.float64)[:-1]
+    sigma = torch.where((t >= A - 1e-12) & (t < B - 1e-12), SIGMA, 0.0)
+    return t, sigma
+
+
+def test_slab_colour_and_transmittance_are_exact():
+    # Interval edges on the slab's faces: piecewise-constant quadrature is exact.
+    t, sigma = slab_samples(count=80)  # spacing 0.05 puts edges at 1.0 and 2.5
+    deltas = sample_deltas(t, last=4.0 - t[-1])
+    weights, transmittance = compositing_weights(sigma, deltas)
+    values = COLOR.expand(len(t), 3)
+    opacity = 1.0 - math.exp(-SIGMA * (B - A))
+    rgb = composite(weights, values) + (1.0 - weights.sum()) * BACKGROUND
+    expected = COLOR * opacity + BACKGROUND * (1.0 - opacity)
+    assert torch.allclose(rgb, expected, atol=1e-5)
+    assert weights.sum().item() == pytest.approx(opacity, abs=1e-5)
+    # T(t) = exp(-sigma * length of the slab before t), at every sample.
+    closed = torch.exp(-SIGMA * (t.clamp(A, B) - A))
+    assert torch.allclose(transmittance, closed, atol=1e-5)
+
+
+def test_unaligned_samples_converge_to_the_closed_form():
+    opacity = 1.0 - math.exp(-SIGMA * (B - A))
+    errors = []
+    for count in (37, 370, 3700):  # edges miss the slab faces
+        t, sigma = slab_samples(count)
+        weights, _ = compositing_weights(sigma, sample_deltas(t, last=4.0 - t[-1]))
+        errors.append(abs(weights.sum().item() - opacity))
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 1e-3
+
+
+def test_expected_depth_of_a_half_space_is_entry_plus_mean_free_path():
+    # Density sigma from A onwards: termination depth A + Exp(sigma), mean A + 1 / sigma.
+    t = torch.linspace(0.0, 30.0, 300_001, dtype=torch.float64)
+    sigma = torch.where(t >= A, SIGMA, 0.0)
+    weights, _ = compositing_weights(sigma, sample_deltas(t))
+    depth = (weights * t).sum().item()
+    assert depth == pytest.approx(A + 1.0 / SIGMA, abs=1e-3)
+
+
+def test_last_nerf_sample_absorbs_the_remaining_light():
+    t = torch.tensor([[1.0, 2.0, 3.0]])
+    sigma = torch.tensor([[0.0, 0.0, 0.5]])
+    deltas = sample_deltas(t)
+    assert deltas[0, -1].item() == FAR_DELTA
+    weights, _ = compositing_weights(sigma, deltas)
+    assert weights.sum().item() == pytest.approx(1.0)
+    assert weights[0, :2].abs().max().item() == 0.0
+
+
+def test_zero_density_is_fully_transparent_and_gradients_flow():
+    t = torch.linspace(0.0, 1.0, 16)[None]
+    sigma = torch.zeros_like(t, requires_grad=True)
+    weights, transmittance = compositing_weights(sigma, sample_deltas(t, last=0.1))
+    assert weights.abs().max().item() == 0.0
+    assert torch.all(transmittance == 1.0)
+    weights.sum().backward()
+    assert torch.all(sigma.grad > 0)  # more density anywhere means more opacity
