@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from rainyscape.cameras import Cameras, opengl_to_opencv, pixel_rays
-from rainyscape.fields.ndc import average_pose, ndc_rays, ndc_to_distance
+from rainyscape.fields.ndc import average_pose, ndc_points, ndc_rays, ndc_to_distance
 
 W, H = 40, 30
 
@@ -161,7 +161,9 @@ def test_ndc_maps_rays_to_straight_rays():
     o_ndc, d_ndc, t_near = ndc_rays(origins, dirs, sx, sy, near)
     for t in (0.5, 2.0, 10.0, 100.0):  # distances past the near plane
         p = origins + (t_near + t)[:, None] * dirs
-        ndc = torch.stack([sx * p[:, 0] / p[:, 2], sy * p[:, 1] / p[:, 2], 1 - 2 * near / p[:, 2]], -1)
+        ndc = ndc_points(p, sx, sy, near)
+        assert torch.allclose(ndc[:, :2], torch.stack([sx * p[:, 0], sy * p[:, 1]], -1) / p[:, 2:], atol=1e-5)
+        assert torch.allclose(ndc[:, 2], 1 - 2 * near / p[:, 2], atol=1e-6)
         s = 1 - near / p[:, 2]  # NDC parameter of that point
         assert torch.allclose(o_ndc + s[:, None] * d_ndc, ndc, atol=1e-4)
         assert torch.allclose(ndc_to_distance(s, near, dirs[:, 2]), torch.full_like(s, t), rtol=1e-3)

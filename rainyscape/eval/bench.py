@@ -113,7 +113,7 @@ def validate_cells(cells: list[Cell]) -> None:
         try:
             method_config(cell.method, [f"data={cell.data}", *cell.overrides])
         except ConfigError as exc:
-            raise ConfigError(f"cell {cell.key}: {exc}") from None
+            raise ConfigError(f"{cell.key.strip('/')}: {exc}") from None
 
 
 # -------------------------------------------------------------------- running a cell
@@ -354,14 +354,16 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
         raise ConfigError("rs-bench: methods= lists no method")
     if opts.iters < 0:
         raise ConfigError(f"rs-bench: iters must be >= 0, got {opts.iters}")
+    budget = [f"trainer.max_iters={opts.iters}"] if opts.iters else []
+    # Every method and override must be valid before any scene is simulated or cell trained.
+    validate_cells(build_cells(methods, [("", "")], budget + overrides,
+                               ("", "") if opts.ablation else None, opts.ablation_method))
     cache = out / "scenes"
     size = (opts.scene_width, opts.scene_rows, opts.scene_cols)
     scene_specs = [s.strip() for s in opts.scenes.split(",") if s.strip()]
     scenes = [resolve_scene(s, cache, *size) for s in scene_specs]
     ablation = resolve_scene(opts.ablation, cache, *size) if opts.ablation else None
-    budget = [f"trainer.max_iters={opts.iters}"] if opts.iters else []
     cells = build_cells(methods, scenes, budget + overrides, ablation, opts.ablation_method)
-    validate_cells(cells)
     json_path, md_path = out / f"{name}.json", out / f"{name}.md"
     results = load_results(json_path)
     results.update({"name": name, "command": command, "machine": machine_description()})

@@ -194,7 +194,9 @@ def rain_table(summary: dict) -> str:
     if not rows:
         return ""
     body = "".join(f"<tr><td>{html.escape(l)}</td><td>{_fmt(v)}</td></tr>" for l, v in rows)
-    return f"<h2>Rain</h2><table>{body}</table>"
+    note = ("<p class='note'>–: the predicted rain has no streaks to measure.</p>"
+            if any(v is None for _, v in rows) else "")
+    return f"<h2>Rain</h2><table>{body}</table>{note}"
 
 
 def per_view_table(rows: list[dict]) -> str:

@@ -24,6 +24,12 @@ def average_pose(c2w: Tensor) -> Tensor:
     return out
 
 
+def ndc_points(points: Tensor, scale_x: float, scale_y: float, near: float) -> Tensor:
+    """NDC image (..., 3) of points (..., 3) in front of the reference camera."""
+    z = points[..., 2].clamp_min(1e-6)
+    return torch.stack([scale_x * points[..., 0] / z, scale_y * points[..., 1] / z, 1.0 - 2.0 * near / z], -1)
+
+
 def ndc_rays(origins: Tensor, directions: Tensor, scale_x: float, scale_y: float,
              near: float) -> tuple[Tensor, Tensor, Tensor]:
     """Rays (in the reference camera's frame) -> NDC rays and the shift to the near plane.

@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from rainyscape.components import ParamGroup
 from rainyscape.errors import ConfigError
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
-from rainyscape.fields.ndc import average_pose, ndc_rays, ndc_to_distance
+from rainyscape.fields.ndc import average_pose, ndc_points, ndc_rays, ndc_to_distance
 from rainyscape.fields.ray_field import RayField
 from rainyscape.fields.rendering import compositing_weights, composite, sample_deltas
 from rainyscape.fields.sampling import sample_pdf, stratified_samples
@@ -41,17 +41,24 @@ class NerfMLP(nn.Module):
         self.view = nn.Linear(width + dir_dim, width // 2)
         self.color = nn.Linear(width // 2, 3)
 
-    def forward(self, points: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+    def _trunk(self, points: Tensor) -> Tensor:
         x = positional_encoding(points, self.pos_freqs)
         h = x
         for i, layer in enumerate(self.trunk):
             h = F.relu(layer(h))
             if i in self.skips:
                 h = torch.cat([x, h], -1)
+        return h
+
+    def forward(self, points: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        h = self._trunk(points)
         sigma = self.density(h)[..., 0]
         d = positional_encoding(directions, self.dir_freqs)
         h = F.relu(self.view(torch.cat([self.feature(h), d], -1)))
         return sigma, self.color(h)
+
+    def raw_density(self, points: Tensor) -> Tensor:
+        return self.density(self._trunk(points))[..., 0]
 
 
 class NerfMLPField(RayField):
@@ -115,6 +122,16 @@ class NerfMLPField(RayField):
 
     # --------------------------------------------------------------------- rendering
 
+    def _to_ndc_frame(self, points: Tensor) -> Tensor:
+        return (points - self.ndc_frame[:3, 3]) @ self.ndc_frame[:3, :3]
+
+    def density(self, points: Tensor) -> Tensor:
+        """Volume density (P,) at world points (P, 3) of the normalised scene (for export)."""
+        if self.use_ndc:
+            points = ndc_points(self._to_ndc_frame(points), *self.ndc_scale, self.near)
+        net = self.fine if self.fine is not None else self.coarse
+        return F.relu(net.raw_density(points))
+
     def _shade(self, net: NerfMLP, points: Tensor, viewdirs: Tensor, t: Tensor,
                step_scale: Tensor) -> tuple[Tensor, Tensor]:
         """Weights (R, N) and colours (R, N, 3) of samples at parameters ``t`` (R, N)."""
@@ -129,19 +146,17 @@ class NerfMLPField(RayField):
         c = self.config
         perturb = self.training and c.perturb
         if self.use_ndc:
-            frame = self.ndc_frame
-            o_ref = (origins - frame[:3, 3]) @ frame[:3, :3]
-            d_ref = directions @ frame[:3, :3]
+            o_ref = self._to_ndc_frame(origins)
+            d_ref = directions @ self.ndc_frame[:3, :3]
             o, d, t_near = ndc_rays(o_ref, d_ref, *self.ndc_scale, self.near)
             start = torch.zeros_like(z_scale)
             t = stratified_samples(start, torch.ones_like(start), c.samples_coarse, perturb)
-            step_scale = d.norm(dim=-1)
         else:
             # Sample in z-depth between near and far (nerf-pytorch), i.e. distance z / cos.
             o, d = origins, directions / z_scale[:, None]
             near = torch.full_like(z_scale, self.near)
             t = stratified_samples(near, torch.full_like(near, self.far), c.samples_coarse, perturb, c.lindisp)
-            step_scale = d.norm(dim=-1)
+        step_scale = d.norm(dim=-1)  # sample parameters -> distances
         weights, rgb = self._shade(self.coarse, o[:, None] + t[..., None] * d[:, None], directions, t, step_scale)
         out = {"rgb_coarse": composite(weights, rgb)}
         if self.fine is not None:

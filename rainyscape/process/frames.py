@@ -159,10 +159,7 @@ def read_photo(path: Path) -> np.ndarray:
     import imageio.v3 as iio
 
     try:
-        if path.suffix.lower() in (".jpg", ".jpeg"):
-            img = iio.imread(path, rotate=True)
-        else:
-            img = iio.imread(path)
+        img = iio.imread(path, plugin="pillow", rotate=True)
     except Exception as exc:  # noqa: BLE001 - any decoder failure is a bad input file
         raise DataError(f"{path}: cannot read the image ({exc})") from None
     img = np.asarray(img)

@@ -16,7 +16,9 @@ patch costs about a 64 x 64 forward whatever the image size.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -62,7 +64,9 @@ class RainPredictor(RainHead):
         upscale: int = 2  # latent map at image size / upscale; PixelShuffle restores it
         lowres_channels: tuple[int, ...] = (512, 256, 128, 128)  # 3x3 convs at latent resolution
         highres_channels: int = 64  # channels after PixelShuffle
-        max_rain: float = 1.0  # R = m tanh(relu(x) / m) keeps R in [0, m]; 0: plain ReLU (unbounded)
+        activation: Literal["softplus", "relu"] = "softplus"  # output non-linearity (authors: relu)
+        initial_rain: float = 0.01  # softplus: R starts near this level everywhere
+        max_rain: float = 1.0  # R = m tanh(act(x) / m) keeps R in [0, m]; 0: unbounded
         mlp_lr: float = 1e-3
         cnn_lr: float = 1e-4
         betas: tuple[float, float] = (0.5, 0.999)
@@ -96,6 +100,11 @@ class RainPredictor(RainHead):
         self.lowres = nn.ModuleList(nn.Conv2d(a, b, 3) for a, b in zip(widths[:-1], widths[1:]))
         self.to_subpixels = nn.Conv2d(widths[-1], c.highres_channels * c.upscale ** 2, 3)
         self.to_rgb = nn.Conv2d(c.highres_channels, 3, 3)
+        if c.activation == "softplus":
+            if not 0 < c.initial_rain < 0.5:
+                raise ConfigError(f"rain_head.initial_rain must be in (0, 0.5), got {c.initial_rain}")
+            with torch.no_grad():  # softplus(bias) = initial_rain: faint rain everywhere, all pixels alive
+                self.to_rgb.bias.fill_(math.log(math.expm1(c.initial_rain)))
         self.lowres_layers = len(self.lowres) + 1  # valid 3x3 convs at latent resolution
 
     # ------------------------------------------------------------------ interface
@@ -135,8 +144,11 @@ class RainPredictor(RainHead):
 
     def bound(self, x: Tensor) -> Tensor:
         """Non-negative rain, softly bounded by ``max_rain`` (the AGR term rewards strong rain
-        gradients without limit, so an unbounded head can grow without end)."""
-        x = F.relu(x)
+        gradients without limit, so an unbounded head can grow without end).
+
+        Softplus keeps a gradient at every pixel; with the authors' ReLU a pixel (or, at
+        initialisation, a whole map) whose pre-activation goes negative never comes back."""
+        x = F.softplus(x) if self.config.activation == "softplus" else F.relu(x)
         m = self.config.max_rain
         return m * torch.tanh(x / m) if m > 0 else x
 

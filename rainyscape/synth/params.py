@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 
 # Bump when the simulator's output changes: cached demo and benchmark scenes are keyed by it.
-SIM_VERSION = "2"
+SIM_VERSION = "3"
 
 
 @dataclass
