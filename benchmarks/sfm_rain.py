@@ -2,8 +2,7 @@
 
 For each preset the simulator renders one hand-held-like video sweep in dynamic rain (rain moves
 between frames, like a real clip); the clean and the rainy frames are each written as an .mp4
-and posed with rs-process-data's video path (the rainy clip also with --relax-registration).
-Reported per clip: frames registered, sparse
+and posed with rs-process-data's video path. Reported per clip: frames registered, sparse
 points, mean reprojection error, and camera error against the simulator after a similarity
 (Umeyama) alignment: centre RMSE as a % of the trajectory extent, the largest rotation error,
 and the largest error of the rotation between consecutive frames (free of the alignment).
@@ -30,11 +29,11 @@ def simulator_c2w(sim: Path, size: int) -> np.ndarray:
 
     with open(sim / "cameras.csv", newline="") as fh:
         rows = np.array([[float(v) for v in row[1:]] for row in list(csv.reader(fh))[1:]])
-    return maya_cameras(rows[:, 0:3], rows[:, 3:6], rows[:, 6], rows[:, 7], rows[:, 8], size, size).c2w.double().numpy()
+    cams = maya_cameras(rows[:, 0:3], rows[:, 3:6], rows[:, 6], rows[:, 7], rows[:, 8], size, size)
+    return cams.c2w.double().numpy()
 
 
-def pose_clip(clip: Path, scene: Path, truth: np.ndarray, frames: int, max_features: int, threads: int,
-              relaxed: bool = False) -> dict:
+def pose_clip(clip: Path, scene: Path, truth: np.ndarray, frames: int, max_features: int, threads: int) -> dict:
     from rainyscape.errors import DataError
     from rainyscape.process.align import aligned_pose_errors, rotation_angle_deg
     from rainyscape.process.colmap_model import colmap_c2w, posed_images, read_model
@@ -43,7 +42,7 @@ def pose_clip(clip: Path, scene: Path, truth: np.ndarray, frames: int, max_featu
     from rainyscape.process.sfm import SfmOptions
 
     options = ProcessOptions(frames=FrameOptions(num_frames=frames),
-                             sfm=SfmOptions(max_features=max_features, num_threads=threads, relaxed=relaxed),
+                             sfm=SfmOptions(max_features=max_features, num_threads=threads),
                              overwrite=True, progress=False)
     start = time.perf_counter()
     try:
@@ -86,13 +85,11 @@ def main() -> None:
                        height=args.size, mode="dynamic", trajectory="video", seed=args.seed, force=True)
         info = json.loads((sim / "scene.json").read_text())
         truth = simulator_c2w(sim, args.size)
-        for kind, folder, relaxed in (("clean", "images_wo_rain", False), ("rainy", "images_rain", False),
-                                      ("rainy --relax-registration", "images_rain", True)):
+        for kind, folder in (("clean", "images_wo_rain"), ("rainy", "images_rain")):
             frames = np.stack([iio.imread(p) for p in sorted((sim / folder).glob("*.png"))])
-            clip = work / preset / f"{folder}.mp4"
+            clip = work / preset / f"{kind}.mp4"
             iio.imwrite(clip, frames, fps=10, codec="libx264", macro_block_size=1)
-            result = pose_clip(clip, work / preset / kind.split()[0] / ("relaxed" if relaxed else "default"),
-                               truth, args.frames, args.max_features, args.threads, relaxed)
+            result = pose_clip(clip, work / preset / kind, truth, args.frames, args.max_features, args.threads)
             row = {"preset": preset, "clip": kind,
                    "rainy_psnr_db": info["metrics"]["psnr_rainy_vs_clean"] if kind == "rainy" else None,
                    **result}

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from rainyscape.dataparsers.colmap import ColmapParser, crop_to_common_size
+from rainyscape.cameras import Cameras
+from rainyscape.dataparsers.colmap import ColmapParser, crop_to_common_size, depth_bounds
 from rainyscape.errors import DataError
 
 CAMERAS_TXT = """# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]
@@ -188,3 +189,15 @@ def test_bad_scenes_raise_clear_errors(tmp_path, breakage, message):
         (model / "cameras.txt").write_text("1 NOT_A_MODEL 8 6 10 4 3\n")
     with pytest.raises(DataError, match=message):
         parse(root)
+
+
+def test_depth_bounds_come_from_the_points_in_view():
+    one = torch.ones(1)
+    cam = Cameras(torch.eye(4)[None], 10 * one, 10 * one, 4 * one, 3 * one, 8, 6)
+    z = torch.linspace(2.0, 4.0, 101)
+    seen = torch.stack([torch.zeros_like(z), torch.zeros_like(z), z], -1)
+    behind = seen * torch.tensor([1.0, 1.0, -1.0])  # behind the camera: ignored
+    aside = seen + torch.tensor([100.0, 0.0, 0.0])  # outside the image: ignored
+    near, far = depth_bounds(cam, torch.cat([seen, behind, aside]))
+    assert near == pytest.approx(0.5 * 2.02, rel=1e-3) and far == pytest.approx(1.5 * 3.98, rel=1e-3)
+    assert depth_bounds(cam, seen[:5]) is None

@@ -35,7 +35,7 @@ def rainy_video(tmp_path_factory) -> tuple[Path, Path]:
     from rainyscape.synth import generate
 
     root = tmp_path_factory.mktemp("rain_video")
-    # Rain pinned to the demo's medium strength (about 28 dB rainy vs clean at 192 px).
+    # Rain pinned to a medium strength (about 27 dB rainy vs clean at 192 px).
     sim = generate(root / "sim", "demo", rows=1, cols=FRAMES, width=SIZE, height=SIZE,
                    mode="dynamic", trajectory="video", seed=0, density=22.0)
     frames = np.stack([iio.imread(p) for p in sorted((sim / "images_rain").glob("*.png"))])

@@ -40,9 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="COLMAP camera model fitted before undistortion (default SIMPLE_RADIAL)")
         sub.add_argument("--camera-per-image", action="store_true",
                          help="one camera per frame instead of one shared camera")
-        sub.add_argument("--matcher", choices=MATCHERS,
-                         default="sequential" if kind == "video" else "exhaustive",
-                         help=f"feature matching (default {'sequential' if kind == 'video' else 'exhaustive'})")
+        matcher = "sequential" if kind == "video" else "exhaustive"
+        sub.add_argument("--matcher", choices=MATCHERS, default=matcher,
+                         help=f"feature matching (default {matcher})")
         sub.add_argument("--overlap", type=int, default=10,
                          help="sequential matching: neighbours matched per frame (default 10)")
         sub.add_argument("--no-loop-detection", action="store_true",
@@ -55,9 +55,6 @@ def build_parser() -> argparse.ArgumentParser:
         sub.add_argument("--init-min-tri-angle", type=float, default=16.0,
                          help="degrees of parallax the first frame pair needs (default 16; lower "
                               "it, e.g. to 4, for narrow baselines such as a stereo pair)")
-        sub.add_argument("--relax-registration", action="store_true",
-                         help="halve COLMAP's inlier minimums (first pair 100 -> 50, each new frame "
-                              "30 -> 15): for heavy rain, whose streaks cost inliers")
         sub.add_argument("--num-threads", type=int, default=-1, help="CPU threads (-1: all)")
         sub.add_argument("--seed", type=int, default=0)
         sub.add_argument("--overwrite", action="store_true",
@@ -92,7 +89,7 @@ def main(argv: list[str]) -> int:
                      matcher=args.matcher, overlap=args.overlap,
                      loop_detection=not args.no_loop_detection, vocab_tree=args.vocab_tree,
                      max_features=args.max_features, min_registered=args.min_registered,
-                     init_min_tri_angle=args.init_min_tri_angle, relaxed=args.relax_registration,
+                     init_min_tri_angle=args.init_min_tri_angle,
                      num_threads=args.num_threads, seed=args.seed, verbose=args.verbose)
     options = ProcessOptions(frames=frames, sfm=sfm, overwrite=args.overwrite, progress=not args.quiet)
     run = process_video if args.kind == "video" else process_images

@@ -46,8 +46,9 @@ def crop_to_common_size(images: list[np.ndarray], cx: np.ndarray, cy: np.ndarray
 
 
 def depth_bounds(cameras: Cameras, points: torch.Tensor) -> tuple[float, float] | None:
-    """Near / far from the z-depths of sparse points seen inside each camera's image."""
-    if points is None or len(points) < 10:
+    """Near / far from the z-depths of the sparse points that project into each camera's image
+    (None with too few points)."""
+    if len(points) < 10:
         return None
     if len(points) > MAX_POINTS_FOR_BOUNDS:
         points = points[torch.randperm(len(points), generator=torch.Generator().manual_seed(0))
@@ -113,12 +114,11 @@ class ColmapParser(DataParser):
         c2w = torch.from_numpy(np.stack([colmap_c2w(v) for v in views])).float()
         cameras = Cameras(c2w, _f32(fx), _f32(fy), _f32(cx), _f32(cy),
                           width=stack.shape[2], height=stack.shape[1])
-        points = colors = None
-        if cfg.load_points and model.num_points3D() > 0:
-            xyz, rgb = model_points(model)
-            points, colors = torch.from_numpy(xyz).float(), torch.from_numpy(rgb)
-        bounds = depth_bounds(cameras, points) if points is not None else None
-        near, far = bounds if bounds else (None, None)
+        xyz, rgb = model_points(model)
+        points, colors = torch.from_numpy(xyz).float(), torch.from_numpy(rgb)
+        near, far = depth_bounds(cameras, points) or (None, None)
+        if not cfg.load_points or len(points) == 0:
+            points = colors = None
         metadata = {
             "colmap_model": str(model_dir),
             "camera_models": sorted({model.cameras[v.camera_id].model_name for v in views}),

@@ -26,7 +26,6 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 MATCHERS = ("sequential", "exhaustive")
 WARN_FRACTION = 0.8  # fewer registered frames than this fraction: warn
 SMALL_SET = 5  # fewer frames than this: keep points seen by two frames only
-RELAXED_INLIERS = (50, 15)  # initial pair, each new frame (COLMAP's defaults: 100, 30)
 MIN_VOCAB_DESCRIPTORS = 6400  # fewer SIFT descriptors in the clip: no loop detection
 
 
@@ -41,7 +40,6 @@ class SfmOptions:
     max_features: int = 8192  # SIFT features per image
     min_registered: float = 0.5  # fail when fewer frames than this fraction register
     init_min_tri_angle: float = 16.0  # degrees; lower it for narrow baselines (a stereo pair)
-    relaxed: bool = False  # halve the inlier minimums for registration (heavy rain)
     num_threads: int = -1  # -1: all cores
     seed: int = 0
     verbose: bool = False  # show COLMAP's own log
@@ -81,7 +79,8 @@ class Registration:
                 f"{self.num_points} points, mean reprojection error "
                 f"{self.mean_reprojection_error:.2f} px")
         if len(self.model_sizes) > 1:
-            text += f"; {len(self.model_sizes)} separate models of {self.model_sizes} frames, kept the largest"
+            text += (f"; {len(self.model_sizes)} separate models of {self.model_sizes} frames, "
+                     "kept the largest")
         return text
 
     def to_json(self) -> dict:
@@ -198,9 +197,6 @@ def incremental_mapping(database: Path, image_dir: Path, out_dir: Path, opts: Sf
     pipeline.min_model_size = min(pipeline.min_model_size, max(2, total // 2))
     pipeline.extract_colors = True
     pipeline.mapper.init_min_tri_angle = opts.init_min_tri_angle
-    if opts.relaxed:  # rain streaks cost inliers; COLMAP's minimums were set for clear photos
-        pipeline.mapper.init_min_num_inliers = RELAXED_INLIERS[0]
-        pipeline.mapper.abs_pose_min_num_inliers = RELAXED_INLIERS[1]
     # In a handful of photos most points are seen twice only; COLMAP's default drops those.
     pipeline.triangulation.ignore_two_view_tracks = total >= SMALL_SET
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -255,11 +251,10 @@ def check_registration(report: Registration, opts: SfmOptions, source: Path) -> 
 
 
 def _remedies(opts: SfmOptions) -> str:
-    tips = ["more frames or photos, closer together (--num-frames for a video)"]
+    tips = ["more frames or photos, closer together (--num-frames for a video)",
+            "full-size frames (heavy rain needs them; check --max-side)"]
     if opts.matcher == "sequential":
         tips.append("--matcher exhaustive")
-    if not opts.relaxed:
-        tips.append("--relax-registration for heavy rain")
     return "try " + ", ".join(tips)
 
 
