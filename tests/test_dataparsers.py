@@ -171,6 +171,8 @@ def test_auto_detects_each_format(tiny_scene_dir, exports, tmp_path):
     assert detect_format(tj_dir) == "transforms-json"
     (tmp_path / "colmap" / "sparse").mkdir(parents=True)
     assert detect_format(tmp_path / "colmap") == "colmap"
+    (tmp_path / "colmap" / "transforms.json").write_text("{}")  # rs-process-data writes both
+    assert detect_format(tmp_path / "colmap") == "colmap"
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match="cannot tell the scene format"):
         detect_format(tmp_path / "empty")

@@ -11,12 +11,13 @@ from rainyscape.dataparsers.base import CommonParserConfig
 from rainyscape.errors import DataError
 from rainyscape.scene import SceneData
 
-# (what marks the format, dataparser name), checked in this order
+# (what marks the format, dataparser name), checked in this order. A COLMAP model wins over
+# the transforms.json that rs-process-data writes beside it: it also carries sparse points.
 MARKERS: list[tuple[tuple[str, ...], str]] = [
     (("cameras.csv",), "maya-csv"),
     (("poses_bounds.npy",), "llff"),
-    (("transforms.json",), "transforms-json"),
     (("sparse", "cameras.bin", "cameras.txt"), "colmap"),
+    (("transforms.json",), "transforms-json"),
 ]
 
 
