@@ -49,7 +49,11 @@ def test_initialises_from_scene_points(tiny_scene):
     rgb = p["sh0"].detach()[:, 0] * SH_C0 + 0.5
     assert torch.allclose(rgb, tiny_scene.point_colors[nearest].float() / 255, atol=1e-5)
     assert torch.allclose(torch.sigmoid(p["opacities"]), torch.tensor(0.1))
-    assert (p["scales"].exp() > 0).all() and (p["scales"].exp() < 1).all()
+    # isotropic, sized by the RMS distance to the 3 nearest other initial points
+    means = p["means"].detach().double()
+    for i in (0, 7, 1999):
+        d = (means - means[i]).norm(dim=-1).sort().values[1:4]
+        assert torch.allclose(p["scales"][i].exp().double(), d.pow(2).mean().sqrt(), rtol=1e-4)
 
 
 def test_random_initialisation_in_scene_box(tiny_scene):
@@ -135,6 +139,8 @@ def test_grow_clones_small_and_splits_large(tiny_scene):
     cb = field.callbacks()[0]
     dens = cb.densifier
     n = field.num_gaussians
+    with torch.no_grad():  # half of them below the clone / split size threshold
+        field.params["scales"][::2] = math.log(0.5 * dens.grow_scale3d * dens.extent)
     small = field.params["scales"].exp().amax(-1) <= dens.grow_scale3d * dens.extent
     assert small.any() and (~small).any()
     dens.grad2d = torch.zeros(n)

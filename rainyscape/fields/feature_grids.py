@@ -46,8 +46,12 @@ class DenseGrid(nn.Module):
         return [self.grid]
 
     @torch.no_grad()
-    def resize(self, sizes: tuple[int, int, int]) -> None:
-        self.grid.data = resample(self.grid.data, sizes[::-1])
+    def resize(self, sizes: tuple[int, int, int]) -> list[tuple[nn.Parameter, nn.Parameter]]:
+        """Resample to ``sizes`` with new Parameters (autograd fixes a leaf's shape); returns
+        (old, new) pairs so optimisers can follow."""
+        old = self.grid
+        self.grid = nn.Parameter(resample(old.detach(), sizes[::-1]))
+        return [(old, self.grid)]
 
 
 class VMGrid(nn.Module):
@@ -80,7 +84,12 @@ class VMGrid(nn.Module):
         return [*self.planes, *self.lines]
 
     @torch.no_grad()
-    def resize(self, sizes: tuple[int, int, int]) -> None:
-        for (a, b, c), plane, line in zip(MODES, self.planes, self.lines):
-            plane.data = resample(plane.data, (sizes[b], sizes[a]))
-            line.data = resample(line.data, (sizes[c], 1))
+    def resize(self, sizes: tuple[int, int, int]) -> list[tuple[nn.Parameter, nn.Parameter]]:
+        """Resample to ``sizes`` with new Parameters; returns (old, new) pairs."""
+        pairs = []
+        for m, (a, b, c) in enumerate(MODES):
+            for factors, size in ((self.planes, (sizes[b], sizes[a])), (self.lines, (sizes[c], 1))):
+                old = factors[m]
+                factors[m] = nn.Parameter(resample(old.detach(), size))
+                pairs.append((old, factors[m]))
+        return pairs

@@ -31,7 +31,7 @@ from rainyscape.fields.contraction import contract, contraction_stretch
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
 from rainyscape.fields.feature_grids import DenseGrid, VMGrid, resample
 from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
-from rainyscape.fields.optim_state import resize_adam_state
+from rainyscape.fields.optim_state import replace_adam_param
 from rainyscape.fields.ray_field import RayField
 from rainyscape.fields.rendering import compositing_weights
 from rainyscape.fields.sampling import ray_box_intersection
@@ -254,10 +254,9 @@ class GridField(RayField):
         sizes = axis_sizes(resolution, self.box_half.cpu())
         optimizers = optimizers or {}
         for name, grid in ((DENSITY_GROUP, self.density_grid), (COLOR_GROUP, self.color_grid)):
-            grid.resize(sizes)
-            if name in optimizers:
-                for param in grid.factors():
-                    resize_adam_state(optimizers[name], param, lambda m, p=param: resample(m, p.shape[2:]))
+            for old, new in grid.resize(sizes):
+                if name in optimizers:
+                    replace_adam_param(optimizers[name], old, new, lambda m, n=new: resample(m, n.shape[2:]))
         self.grid_resolution.fill_(resolution)
 
     @torch.no_grad()
@@ -269,10 +268,10 @@ class GridField(RayField):
         self.occupancy.set(occupied_cells(alpha, self.config.occupancy_threshold))
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        # A checkpoint may hold grown grids: take their shapes before copying.
-        for name, param in self.named_parameters():
-            if name in state_dict and state_dict[name].shape != param.shape:
-                param.data = torch.empty_like(state_dict[name], device=param.device)
+        # A checkpoint may hold grown grids: grow to its resolution before copying.
+        saved = state_dict.get("grid_resolution")
+        if saved is not None and int(saved) != self.resolution:
+            self.grow(int(saved))
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
 

@@ -1,24 +1,29 @@
-"""Keep Adam's per-parameter moments in step with parameters that change shape."""
+"""Keep an Adam optimiser in step with parameters that are replaced by resampled ones."""
 
 from __future__ import annotations
 
 from typing import Callable
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 
 @torch.no_grad()
-def resize_adam_state(optimizer: torch.optim.Optimizer, param: Tensor,
-                      resample: Callable[[Tensor], Tensor]) -> None:
-    """After ``param.data`` was resampled by ``resample``, resample its moments the same way.
+def replace_adam_param(optimizer: torch.optim.Optimizer, old: nn.Parameter, new: nn.Parameter,
+                       resample: Callable[[Tensor], Tensor]) -> None:
+    """Put ``new`` where ``old`` was in ``optimizer`` and carry its moments over, resampled
+    by ``resample`` (the map that made ``new`` from ``old``).
 
-    Interpolating the moments keeps the effective step size of each region (a reset would
-    make the next steps tiny or huge); the step count is kept for bias correction.
+    Interpolating the moments keeps each region's effective step size (a reset would make
+    the next steps tiny or huge); the step count is kept for bias correction.
     """
-    state = optimizer.state.get(param)
-    if not state:
-        return
-    for key in ("exp_avg", "exp_avg_sq", "max_exp_avg_sq"):
-        if key in state:
-            state[key] = resample(state[key]).contiguous()
+    for group in optimizer.param_groups:
+        for i, p in enumerate(group["params"]):
+            if p is old:
+                group["params"][i] = new
+    state = optimizer.state.pop(old, None)
+    if state:
+        for key in ("exp_avg", "exp_avg_sq", "max_exp_avg_sq"):
+            if key in state:
+                state[key] = resample(state[key]).contiguous()
+        optimizer.state[new] = state
