@@ -80,3 +80,15 @@ def test_angle_and_correlation_helpers():
     assert correlation(a, 2 * a + 1) == pytest.approx(1.0)
     assert correlation(a, -a) == pytest.approx(-1.0)
     assert correlation(a, torch.ones_like(a)) is None
+
+
+def test_multi_direction_rain_reports_every_direction():
+    from rainyscape.config import LossConfig
+    from rainyscape.losses.agr import AdaptiveGradientRotation
+
+    pipe = make_pipeline()
+    agr_cfg = AdaptiveGradientRotation.Config(top_k=2)
+    pipe.losses = {"agr": (LossConfig("agr", options=agr_cfg), AdaptiveGradientRotation(agr_cfg))}
+    rows = evaluate_pipeline(pipe)["per_view"]
+    train = [r for r in rows if r["split"] == "train"]
+    assert all(len(r["rain_angles_deg"]) == 2 and r["rain_angles_deg"][0] == r["rain_angle_deg"] for r in train)

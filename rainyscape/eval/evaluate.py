@@ -118,23 +118,30 @@ def view_images(pipeline: Pipeline, index: int) -> ViewImages:
 
 
 def _agr_options(pipeline: Pipeline) -> dict:
-    """Histogram settings of the run's AGR term, so evaluation measures angles as training did."""
+    """Histogram settings of the run's AGR term (``k``: its rain directions per image), so
+    evaluation measures angles as training did."""
     for cfg, _ in pipeline.losses.values():
         if cfg.name == "agr":
             opts = vars(cfg.options) if not isinstance(cfg.options, dict) else cfg.options
-            return {k: opts[k] for k in ("bins", "threshold", "smoothing", "kernel") if k in opts}
+            out = {k: opts[k] for k in ("bins", "threshold", "smoothing", "kernel") if k in opts}
+            return {**out, "k": int(opts.get("top_k", 1))}
     return {}
 
 
-def streak_angle_deg(image: Tensor, options: dict) -> float | None:
-    """Direction the dominant streaks run along, degrees in [0, 180) from the image +x axis
-    towards +y (down), estimated as the AGR loss does; None if the image has no edges."""
+def streak_angles_deg(image: Tensor, options: dict) -> list[float]:
+    """Directions the dominant streaks run along (``options["k"]`` of them, strongest first),
+    degrees in [0, 180) from the image +x axis towards +y (down), estimated as the AGR loss
+    does; empty if the image has no edges."""
     from rainyscape.rain.angles import estimate_rain_angles, streak_angle
 
-    theta, valid = estimate_rain_angles(image[None], k=1, **options)
-    if not bool(valid[0, 0]):
-        return None
-    return math.degrees(float(streak_angle(theta[0, 0])))
+    theta, valid = estimate_rain_angles(image[None], **{"k": 1, **options})
+    return [math.degrees(float(streak_angle(t))) for t, ok in zip(theta[0], valid[0]) if bool(ok)]
+
+
+def streak_angle_deg(image: Tensor, options: dict) -> float | None:
+    """The dominant streak direction (see :func:`streak_angles_deg`), or None."""
+    angles = streak_angles_deg(image, {**options, "k": 1})
+    return angles[0] if angles else None
 
 
 def angle_difference_deg(a: float, b: float) -> float:
@@ -182,6 +189,8 @@ def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_options: dict) -> dict
                 row.update({f"{key}_{k}": x for k, x in image_metrics(img, v.clean, lpips).items()})
     if v.rain is not None:
         row["rain_angle_deg"] = streak_angle_deg(v.rain, angle_options)
+        if angle_options.get("k", 1) > 1:  # multi-direction rain: every direction the AGR term uses
+            row["rain_angles_deg"] = streak_angles_deg(v.rain, angle_options)
         row["residual_angle_deg"] = streak_angle_deg(v.rainy - v.rendered, angle_options)
         if v.true_rain is not None:
             row["rain_correlation"] = correlation(v.rain, v.true_rain)
