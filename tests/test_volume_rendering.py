@@ -58,13 +58,15 @@ def test_expected_depth_of_a_half_space_is_entry_plus_mean_free_path():
 
 
 def test_last_nerf_sample_absorbs_the_remaining_light():
-    t = torch.tensor([[1.0, 2.0, 3.0]])
-    sigma = torch.tensor([[0.0, 0.0, 0.5]])
+    t = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+    sigma = torch.tensor([[0.0, 0.7, 0.0, 3.0]])  # float32, as in training
     deltas = sample_deltas(t)
     assert deltas[0, -1].item() == FAR_DELTA
     weights, _ = compositing_weights(sigma, deltas)
     assert weights.sum().item() == pytest.approx(1.0)
-    assert weights[0, :2].abs().max().item() == 0.0
+    assert weights[0, 1].item() == pytest.approx(1 - math.exp(-0.7))
+    assert weights[0, 3].item() == pytest.approx(math.exp(-0.7))  # not swamped by the 1e10 interval
+    assert weights[0, 0].item() == 0.0 and weights[0, 2].item() == 0.0
 
 
 def test_zero_density_is_fully_transparent_and_gradients_flow():

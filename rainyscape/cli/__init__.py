@@ -17,3 +17,8 @@ def run_cli(main: Callable[[list[str]], int], argv: list[str] | None = None) -> 
         return exc.exit_code
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # e.g. `rs-eval --help | head`: the reader left; exit quietly
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1

@@ -59,8 +59,8 @@ def train_run(cfg: PipelineConfig, run_dir: Path | None = None) -> RunResult:
             from rainyscape.eval.evaluate import evaluate_pipeline, write_metrics
 
             metrics = evaluate_pipeline(pipeline, run_dir)
+            write_status(run_dir, "finished", step=trainer.step)  # before the report shows it
             write_metrics(run_dir, metrics)
-            write_status(run_dir, "finished", step=trainer.step)
         else:
             write_status(run_dir, "stopped", step=trainer.step)
     except KeyboardInterrupt:

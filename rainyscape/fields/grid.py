@@ -198,9 +198,11 @@ class GridField(RayField):
                   else torch.full(shape, 0.5, device=o.device))
         t_lin = self.near + (torch.arange(n_lin, device=o.device) + jitter) * step
         valid = t_lin < split[:, None]
-        t_lin = torch.minimum(t_lin, split[:, None])
         s = (torch.arange(n_far, device=o.device) + jitter) / n_far
         t_far = 1.0 / ((1.0 - s) / split[:, None] + s / self.far)
+        # Padding sits at the first far sample: zero-length intervals, so a ray renders the
+        # same whatever the longest ray of its batch (chunking does not change images).
+        t_lin = torch.where(valid, t_lin, t_far[:, :1])
         t = torch.cat([t_lin, t_far], -1)
         return t, torch.cat([valid, torch.ones_like(t_far, dtype=torch.bool)], -1)
 

@@ -23,8 +23,8 @@ def compositing_weights(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
     """Weights T_i alpha_i and transmittance T_i (both (..., N)) from densities and lengths."""
     optical = sigma * deltas
     alpha = 1.0 - torch.exp(-optical)
-    # Exclusive cumulative sum: the light that survives everything before sample i.
-    before = torch.cumsum(optical, -1) - optical
+    # Exclusive cumulative sum (not cumsum - optical: the 1e10 last interval would swamp it).
+    before = torch.cat([torch.zeros_like(optical[..., :1]), torch.cumsum(optical[..., :-1], -1)], -1)
     transmittance = torch.exp(-before)
     return transmittance * alpha, transmittance
 

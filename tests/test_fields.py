@@ -1,0 +1,211 @@
+"""The NeRF fields: shapes, chunking, checkpoints, coarse-to-fine growth, occupancy, fits."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from rainyscape import config
+from rainyscape.cameras import Window
+from rainyscape.components import TrainState
+from rainyscape.fields.grid import GridField, growth_resolution
+from rainyscape.fields.nerf_mlp import NerfMLP, NerfMLPField
+
+SMALL_MLP = dict(depth=4, width=64, skips=(2,), samples_coarse=16, samples_fine=16, train_chunk=0)
+SMALL_GRID = dict(resolution_init=8, resolution_final=24, growth_at=(0.2, 0.5), occupancy_from=0.3,
+                  occupancy_every=10, occupancy_resolution=32)
+
+
+def _options(name: str, **extra):
+    cls = NerfMLPField if name == "nerf-mlp" else GridField
+    base = SMALL_MLP if name == "nerf-mlp" else SMALL_GRID
+    return cls.Config(**{**base, **extra})
+
+
+def _field(name: str, scene, **extra):
+    torch.manual_seed(0)
+    cls = NerfMLPField if name == "nerf-mlp" else GridField
+    return cls(_options(name, **extra), scene)
+
+
+def _full(scene, views):
+    cams = scene.cameras[views]
+    return cams, Window.full(cams)
+
+
+def test_nerf_mlp_has_the_paper_architecture():
+    net = NerfMLP(pos_freqs=10, dir_freqs=4, depth=8, width=256, skips=(4,))
+    linears = [m for m in net.trunk]
+    assert [l.in_features for l in linears] == [63, 256, 256, 256, 256, 256 + 63, 256, 256]
+    assert net.view.in_features == 256 + 27 and net.view.out_features == 128
+    assert sum(p.numel() for p in net.parameters()) == 595_844  # as nerf-pytorch
+    sigma, rgb = net(torch.randn(5, 7, 3), torch.randn(5, 7, 3))
+    assert sigma.shape == (5, 7) and rgb.shape == (5, 7, 3)
+
+
+@pytest.mark.parametrize("name", ["nerf-mlp", "grid"])
+def test_render_shapes_and_chunking(name, tiny_scene):
+    field = _field(name, tiny_scene).eval()
+    cams, window = _full(tiny_scene, [0, 3])
+    with torch.no_grad():
+        field.eval_chunk = 10**9
+        whole = field.render(cams, window)
+        field.eval_chunk = 333  # not a divisor of the ray count
+        chunked = field.render(cams, window)
+    h, w = tiny_scene.height, tiny_scene.width
+    assert whole.rgb.shape == (2, 3, h, w)
+    assert whole.depth.shape == (2, 1, h, w) and whole.acc.shape == (2, 1, h, w)
+    assert torch.allclose(whole.rgb, chunked.rgb, atol=1e-6)
+    assert torch.allclose(whole.depth, chunked.depth, atol=1e-4)
+    assert torch.all((whole.rgb >= 0) & (whole.rgb <= 1 + 1e-5))
+    assert torch.all((whole.acc >= 0) & (whole.acc <= 1 + 1e-5))
+
+
+def test_gradient_checkpointed_chunks_match_one_pass(tiny_scene):
+    field = _field("nerf-mlp", tiny_scene, perturb=False, density_noise=0.0).train()
+    cams, window = _full(tiny_scene, [1])
+    grads = []
+    for chunk in (0, 500):
+        field.zero_grad()
+        field.train_chunk = chunk
+        out = field.render(cams, window)
+        (out.rgb.square().mean() + out.extras["rgb_coarse"].mean()).backward()
+        grads.append(torch.cat([p.grad.flatten() for p in field.parameters()]))
+    assert torch.allclose(grads[0], grads[1], atol=1e-6, rtol=1e-4)
+
+
+def test_nerf_mlp_coarse_loss_and_lr_schedule(tiny_scene):
+    field = _field("nerf-mlp", tiny_scene)
+    cams, window = _full(tiny_scene, [0])
+    out = field.train().render(cams, window)
+    target = torch.rand_like(out.rgb)
+    losses = field.extra_losses(out, target)
+    assert set(losses) == {"coarse"}
+    assert losses["coarse"].item() == pytest.approx(((out.extras["rgb_coarse"] - target) ** 2).mean().item())
+    (group,) = field.param_groups()
+    assert group.lr == 5e-4 and group.lr_joint == 1e-6  # the paper's lr after the warm-up
+    assert group.lr_decay == 0.1 and group.lr_decay_steps == 250_000
+    assert len(group.params) == len(list(field.parameters()))
+
+
+def test_nerf_mlp_density_noise_only_while_training(tiny_scene):
+    field = _field("nerf-mlp", tiny_scene, perturb=False)
+    cams, window = _full(tiny_scene, [0])
+    with torch.no_grad():
+        field.eval()
+        a, b = field.render(cams, window).rgb, field.render(cams, window).rgb
+        assert torch.equal(a, b)
+        field.train()
+        c, d = field.render(cams, window).rgb, field.render(cams, window).rgb
+        assert not torch.equal(c, d)
+
+
+def test_growth_schedule_is_log_spaced_and_monotone():
+    res = [growth_resolution(s, 100, 16, 128, (0.1, 0.2, 0.4)) for s in range(101)]
+    assert res[0] == 16 and res[9] == 16 and res[10] == 32 and res[20] == 64 and res[40] == 128
+    assert res == sorted(res) and res[-1] == 128
+    assert growth_resolution(0, 100, 16, 128, ()) == 128
+
+
+def _state(field, step, max_iters, optimizers):
+    return TrainState(step, max_iters, max_iters, "warmup", optimizers, torch.device("cpu"))
+
+
+def _adam(field):
+    return {g.name: torch.optim.Adam(g.params, lr=g.lr, eps=g.eps) for g in field.param_groups()}
+
+
+def _step(field, optimizers, scene, view=0):
+    cams, window = _full(scene, [view])
+    out = field.train().render(cams, window)
+    loss = (out.rgb - 0.5).square().mean()
+    for opt in optimizers.values():
+        opt.zero_grad()
+    loss.backward()
+    for opt in optimizers.values():
+        opt.step()
+
+
+def test_grid_growth_carries_adam_state_over(tiny_scene):
+    field = _field("grid", tiny_scene)
+    opts = _adam(field)
+    _step(field, opts, tiny_scene)
+    old = [p for g in opts.values() for group in g.param_groups for p in group["params"]]
+    old_shapes = {id(p): p.shape for p in old}
+    (grow_cb, _) = field.callbacks()
+    grow_cb.before_step(_state(field, 50, 100, opts))  # past growth_at 0.2 and 0.5
+    assert field.resolution == 24
+    current = {id(p) for p in field.parameters()}
+    for opt in opts.values():
+        for group in opt.param_groups:
+            for p in group["params"]:
+                assert id(p) in current  # the optimiser follows the new parameters
+                state = opt.state.get(p)
+                if state:
+                    assert state["exp_avg"].shape == p.shape == state["exp_avg_sq"].shape
+                    assert torch.all(state["exp_avg_sq"] >= 0)
+    grown = [p for p in field.density_grid.factors()]
+    assert all(p.shape != old_shapes.get(id(p)) for p in grown)
+    _step(field, opts, tiny_scene)  # trains on at the new size
+
+
+def test_occupancy_skips_empty_space_without_changing_the_image(tiny_scene):
+    field = _field("grid", tiny_scene, resolution_init=24, density_grid="dense")
+    with torch.no_grad():  # a single opaque block in an otherwise empty box
+        grid = field.density_grid.grid
+        grid.fill_(-20.0)
+        n = grid.shape[-3:]
+        grid[..., n[0] // 3: n[0] // 2, n[1] // 3: n[1] // 2, n[2] // 3: n[2] // 2] = 10.0
+    cams, window = _full(tiny_scene, [0, 5])
+    field.eval()
+    with torch.no_grad():
+        before = field.render(cams, window)
+        field.update_occupancy()
+        after = field.render(cams, window)
+    assert field.occupancy.fraction() < 0.2
+    assert torch.allclose(before.rgb, after.rgb, atol=2e-3)
+    assert torch.allclose(before.acc, after.acc, atol=2e-3)
+
+
+@pytest.mark.parametrize("name", ["nerf-mlp", "grid"])
+def test_checkpoint_round_trip(name, tiny_scene, tmp_path):
+    field = _field(name, tiny_scene)
+    opts = _adam(field)
+    if name == "grid":
+        field.grow(20, opts)
+        field.update_occupancy()
+    _step(field, opts, tiny_scene)
+    path = tmp_path / "ckpt.pt"
+    torch.save({"field": field.state_dict(), "opt": {k: o.state_dict() for k, o in opts.items()}}, path)
+    fresh = _field(name, tiny_scene)
+    state = torch.load(path, weights_only=False)
+    fresh.load_state_dict(state["field"])
+    fresh_opts = _adam(fresh)  # as the trainer does: optimisers rebuilt after loading
+    for k, opt in fresh_opts.items():
+        opt.load_state_dict(state["opt"][k])
+    cams, window = _full(tiny_scene, [2])
+    with torch.no_grad():
+        a = field.eval().render(cams, window)
+        b = fresh.eval().render(cams, window)
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth)
+    if name == "grid":
+        assert fresh.resolution == 20
+        assert torch.equal(fresh.occupancy.occupied, field.occupancy.occupied)
+    # Both continue identically.
+    torch.manual_seed(1)
+    _step(field, opts, tiny_scene)
+    torch.manual_seed(1)
+    _step(fresh, fresh_opts, tiny_scene)
+    for p, q in zip(field.parameters(), fresh.parameters()):
+        assert torch.allclose(p, q, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["nerf-mlp", "grid"])
+def test_density_for_export(name, tiny_scene):
+    field = _field(name, tiny_scene)
+    pts = torch.randn(100, 3)
+    with torch.no_grad():
+        sigma = field.density(pts)
+    assert sigma.shape == (100,) and torch.all(sigma >= 0)
