@@ -100,12 +100,22 @@ class RainPredictor(RainHead):
         self.lowres = nn.ModuleList(nn.Conv2d(a, b, 3) for a, b in zip(widths[:-1], widths[1:]))
         self.to_subpixels = nn.Conv2d(widths[-1], c.highres_channels * c.upscale ** 2, 3)
         self.to_rgb = nn.Conv2d(c.highres_channels, 3, 3)
-        if c.activation == "softplus":
-            if not 0 < c.initial_rain < 0.5:
-                raise ConfigError(f"rain_head.initial_rain must be in (0, 0.5), got {c.initial_rain}")
-            with torch.no_grad():  # softplus(bias) = initial_rain: faint rain everywhere, all pixels alive
-                self.to_rgb.bias.fill_(math.log(math.expm1(c.initial_rain)))
+        if c.activation == "softplus" and not 0 < c.initial_rain < 0.5:
+            raise ConfigError(f"rain_head.initial_rain must be in (0, 0.5), got {c.initial_rain}")
+        self._init_cnn()
         self.lowres_layers = len(self.lowres) + 1  # valid 3x3 convs at latent resolution
+
+    @torch.no_grad()
+    def _init_cnn(self) -> None:
+        """He initialisation for the ReLU layers: PyTorch's default shrinks the signal about
+        3x per layer, so six layers leave an output that ignores the latent map and learns
+        very slowly. The output layer starts small, at a faint uniform rain level."""
+        for conv in [*self.lowres, self.to_subpixels]:
+            nn.init.kaiming_normal_(conv.weight, nonlinearity="relu")
+            nn.init.zeros_(conv.bias)
+        nn.init.normal_(self.to_rgb.weight, std=0.01)
+        bias = math.log(math.expm1(self.config.initial_rain)) if self.config.activation == "softplus" else 0.0
+        self.to_rgb.bias.fill_(bias)
 
     # ------------------------------------------------------------------ interface
 
