@@ -209,3 +209,26 @@ def test_density_for_export(name, tiny_scene):
     with torch.no_grad():
         sigma = field.density(pts)
     assert sigma.shape == (100,) and torch.all(sigma >= 0)
+
+
+FIT = {  # short CPU fits on the 48 px tiny scene; floors measured (see docs/fields.md), minus margin
+    "nerf": (["trainer.max_iters=150", "trainer.warmup_patches=512", "field.resolution_final=48",
+              "field.lr_decay_steps=150"], 0.0),
+    "vanilla-nerf": (["trainer.max_iters=150", "trainer.warmup_patches=512", "field.depth=4",
+                      "field.width=64", "field.skips=2", "field.samples_coarse=24",
+                      "field.samples_fine=24", "field.train_chunk=0", "field.lr=2e-3"], 0.0),
+}
+
+
+@pytest.mark.parametrize("method", sorted(FIT))
+def test_short_fit_raises_heldout_psnr(method, tiny_scene_dir, tmp_path):
+    from rainyscape.engine.run import train_run
+
+    overrides, floor = FIT[method]
+    cfg = config.method_config(method, [f"data={tiny_scene_dir}", f"trainer.output_dir={tmp_path}",
+                                        "trainer.eval_every=0", "trainer.checkpoint_every=0",
+                                        "trainer.progress=false", *overrides])
+    result = train_run(cfg)
+    summary = result.metrics["summary"]
+    print(method, {k: round(v, 2) for k, v in summary.items()})
+    assert summary["heldout_psnr"] > floor

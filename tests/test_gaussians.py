@@ -110,6 +110,8 @@ def test_schedule_scales_with_run_length():
     s = DensifySchedule.scaled(3000, 30_000, 500, 15_000, 100, 3000, 1000)
     assert (s.start, s.stop, s.every, s.reset_every, s.sh_every) == (50, 1500, 10, 300, 100)
     assert DensifySchedule.scaled(30_000, 30_000, 500, 15_000, 100, 3000, 1000).stop == 15_000
+    # opacity resets keep a floor: recovering from one takes a fixed number of steps
+    assert DensifySchedule.scaled(3000, 30_000, 500, 15_000, 100, 3000, 1000, 1000).reset_every == 1000
 
 
 def test_replace_params_keeps_adam_state_consistent():

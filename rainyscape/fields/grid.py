@@ -9,7 +9,7 @@ about cubic in the world.
 Samples are evenly spaced (in voxels) up to where the ray leaves the scene box, then evenly
 in inverse distance out to ``far`` (evenly in the contracted coordinate). An occupancy grid
 skips empty space; colour is computed only where a sample's weight matters. Light that
-reaches ``far`` takes a learned sky colour per direction.
+is left at the last sample ends there (as in NeRF): far content and sky live on the shell.
 
 The grids start coarse and grow on a schedule: an explicit grid has no spectral bias of its
 own, so its resolution is what makes it fit low frequencies first (the paper's prior).
@@ -33,7 +33,7 @@ from rainyscape.fields.feature_grids import DenseGrid, VMGrid, resample
 from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
 from rainyscape.fields.optim_state import replace_adam_param
 from rainyscape.fields.ray_field import RayField
-from rainyscape.fields.rendering import compositing_weights
+from rainyscape.fields.rendering import FAR_DELTA, compositing_weights, sample_deltas
 from rainyscape.fields.sampling import ray_box_intersection
 from rainyscape.scene import SceneData
 
@@ -55,14 +55,6 @@ def axis_sizes(resolution: int, extent: Tensor) -> tuple[int, int, int]:
     """Lattice points per axis: ``resolution``^3 in all, shared in proportion to ``extent``."""
     ratio = extent / extent.prod() ** (1.0 / 3.0)
     return tuple(max(2, int(round(resolution * float(r)))) for r in ratio)
-
-
-def sky_frame(up: Tensor) -> Tensor:
-    """Orthonormal columns (e1, e2, up) for a given up vector."""
-    up = F.normalize(up, dim=0)
-    helper = torch.eye(3, dtype=up.dtype, device=up.device)[int(up.abs().argmin())]
-    e1 = F.normalize(torch.linalg.cross(helper, up), dim=0)
-    return torch.stack([e1, torch.linalg.cross(up, e1), up], 1)
 
 
 class ColorNet(nn.Module):
@@ -97,16 +89,20 @@ class GridField(RayField):
         view_freqs: int = 2  # positional-encoding frequencies of the view direction
         step_ratio: float = 0.5  # sample spacing in voxels
         density_scale: float = 25.0  # sigma = scale * softplus(grid + shift)
-        density_shift: float = -10.0  # a zero grid is nearly empty space
+        density_shift: float = -5.0  # a zero grid: a light haze the first steps carve
         box_scale: float = 1.0  # the uncontracted region: the scene box scaled about its centre
-        background: Literal["sky", "learned", "black", "white"] = "sky"  # sky: colour per direction
+        # last-sample: the last sample takes the light that is left (NeRF), so far content and
+        # sky live on the outer shell; a learned constant would rather explain the commonest
+        # surface colour (a grey road) and drain its density.
+        background: Literal["last-sample", "black", "white"] = "last-sample"
         occupancy_resolution: int = 64
-        occupancy_from: float = 0.1  # fraction of the run before the first occupancy update
-        occupancy_every: int = 50  # steps between updates
+        occupancy_from: float = 0.2  # fraction of the run before the first occupancy update
+        occupancy_every: int = 25  # steps between updates
         occupancy_threshold: float = 0.01  # opacity of one step below which a cell is empty
         weight_threshold: float = 1e-4  # colour is computed only where a sample's weight reaches this
+        transmittance_threshold: float = 1e-4  # samples behind this much opacity get no gradient
         lr_density: float = 0.1
-        lr_color: float = 0.02  # colour factors and sky
+        lr_color: float = 0.1
         lr_network: float = 1e-3
         lr_decay: float = 0.1  # every lr x lr_decay per lr_decay_steps (exponentially)
         lr_decay_steps: int = 3000
@@ -132,9 +128,6 @@ class GridField(RayField):
         center, half = 0.5 * (box[0] + box[1]), (0.5 * (box[1] - box[0]) * c.box_scale).clamp_min(1e-3)
         self.register_buffer("box_center", center, persistent=False)
         self.register_buffer("box_half", half, persistent=False)
-        # The sky map's frame: latitude about "up", against the cameras' mean down axis (OpenCV y).
-        self.register_buffer("sky_frame", sky_frame(-scene.cameras.c2w[:, :3, 1].float().mean(0)),
-                             persistent=False)
         self.register_buffer("grid_resolution", torch.tensor(c.resolution_init))
         sizes = axis_sizes(c.resolution_init, half)
         self.density_grid = (DenseGrid(1, sizes) if c.density_grid == "dense"
@@ -142,8 +135,6 @@ class GridField(RayField):
         self.color_grid = VMGrid(c.color_components, sizes)
         self.basis = nn.Linear(self.color_grid.channels, c.feature_dim, bias=False)
         self.color_net = ColorNet(c.feature_dim, c.view_freqs, c.hidden)
-        self.sky = nn.Parameter(torch.zeros(1, 3, 8, 16)) if c.background == "sky" else None
-        self.sky_color = nn.Parameter(torch.zeros(3)) if c.background == "learned" else None
         self.occupancy = OccupancyGrid(c.occupancy_resolution)
 
     # ------------------------------------------------------------------ geometry
@@ -166,21 +157,6 @@ class GridField(RayField):
     def density(self, points: Tensor) -> Tensor:
         """Volume density (P,) at world points (P, 3) of the normalised scene (for export)."""
         return self._sigma(contract((points - self.box_center) / self.box_half) / 2.0)
-
-    def _background(self, directions: Tensor) -> Tensor:
-        c = self.config
-        if c.background == "black":
-            return torch.zeros_like(directions)
-        if c.background == "white":
-            return torch.ones_like(directions)
-        if c.background == "learned":
-            return torch.sigmoid(self.sky_color).expand_as(directions)
-        local = directions @ self.sky_frame  # (x, y, up)
-        lat = torch.asin(local[:, 2].clamp(-1, 1)) / (math.pi / 2)
-        lon = torch.atan2(local[:, 1], local[:, 0]) / math.pi
-        grid = torch.stack([lon, -lat], -1)[None, :, None]  # zenith at the top row
-        sky = F.grid_sample(self.sky, grid, align_corners=False, padding_mode="border")
-        return torch.sigmoid(sky[0, :, :, 0].T)
 
     def _samples(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
         """Sample distances (R, N) and which are real (R, N), for box-normalised rays."""
@@ -213,10 +189,21 @@ class GridField(RayField):
         o = (origins - self.box_center) / self.box_half
         d = directions / self.box_half
         t, valid = self._samples(o, d)
-        deltas = (torch.cat([t[:, 1:], torch.full_like(t[:, :1], self.far)], -1) - t).clamp_min(0.0)
+        last = FAR_DELTA if self.config.background == "last-sample" else 0.0
+        deltas = sample_deltas(t, last=last).clamp_min(0.0)
         pts = contract(o[:, None] + t[..., None] * d[:, None])  # (R, N, 3) in [-2, 2]
-        live = (valid & self.occupancy.lookup(pts)).nonzero(as_tuple=True)
-        sigma = torch.zeros_like(t).index_put(live, self._sigma(pts[live] / 2.0))
+        live = valid & self.occupancy.lookup(pts)
+        if self.config.background == "last-sample":
+            live[:, -1] = True  # it must stay able to take the light that is left
+        idx = live.nonzero(as_tuple=True)
+        zeros = torch.zeros_like(t)
+        with torch.no_grad():  # march without gradients first: what light reaches each sample
+            sigma = zeros.index_put(idx, self._sigma(pts[idx] / 2.0))
+            _, transmittance = compositing_weights(sigma, deltas)
+        if torch.is_grad_enabled():
+            # Only samples that light still reaches get gradients (early ray termination).
+            idx = (live & (transmittance > self.config.transmittance_threshold)).nonzero(as_tuple=True)
+            sigma = zeros.index_put(idx, self._sigma(pts[idx] / 2.0))
         weights, _ = compositing_weights(sigma, deltas)
         # Colour only where it shows; composited sparsely, straight into the rays.
         shade = (weights.detach() >= self.config.weight_threshold).nonzero(as_tuple=True)
@@ -225,7 +212,8 @@ class GridField(RayField):
         rgb = torch.zeros_like(origins).index_add(0, shade[0], weights[shade][:, None] * rgb_samples)
         acc = weights.sum(-1)
         rest = (1.0 - acc).clamp_min(0.0)
-        rgb = rgb + rest[:, None] * self._background(directions)
+        if self.config.background == "white":
+            rgb = rgb + rest[:, None]
         depth = ((weights * t).sum(-1) + rest * self.far) * z_scale
         return {"rgb": rgb, "depth": depth, "acc": acc}
 
@@ -233,7 +221,7 @@ class GridField(RayField):
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config
-        color = self.color_grid.factors() + [p for p in (self.sky, self.sky_color) if p is not None]
+        color = self.color_grid.factors()
         network = list(self.basis.parameters()) + list(self.color_net.parameters())
 
         def group(name: str, params: list, lr: float) -> ParamGroup:

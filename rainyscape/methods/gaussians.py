@@ -31,14 +31,14 @@ gaussians_3dgs = MethodSpec(
     config=PipelineConfig(
         method="3dgs",
         dataparser=ComponentConfig("auto"),
-        field=ComponentConfig("gaussians", {"max_gaussians": 200_000}),
+        field=ComponentConfig("gaussians", {"max_gaussians": 40_000}),
         losses={"photometric": LossConfig("l1-ssim", weight=1.0, phases=("warmup", "joint"),
                                           options={"ssim_weight": 0.2})},
         trainer=TrainerConfig(
             max_iters=GS_ITERS,
             warmup_fraction=1.0,
-            warmup_patches=1,  # one view per step, as 3DGS; a patch of it keeps CPU steps short
-            warmup_patch_size=64,
+            warmup_patches=1,  # one whole view per step, as 3DGS
+            warmup_patch_size=0,
             joint_patches=1,
             joint_patch_size=64,
             eval_every=500,

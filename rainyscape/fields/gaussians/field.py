@@ -79,6 +79,7 @@ class GaussianField(Field):
         refine_stop: int = 15_000
         refine_every: int = 100
         reset_every: int = 3000
+        min_reset_every: int = 1000  # opacity resets at least this many steps apart, whatever the run
         grow_grad2d: float = 2e-4
         grow_scale3d: float = 0.01
         prune_opacity: float = 0.005
@@ -156,7 +157,8 @@ class GaussianField(Field):
     def schedule(self, max_iters: int) -> DensifySchedule:
         c = self.config
         return DensifySchedule.scaled(max_iters, c.reference_iters, c.refine_start, c.refine_stop,
-                                      c.refine_every, c.reset_every, c.sh_degree_every)
+                                      c.refine_every, c.reset_every, c.sh_degree_every,
+                                      c.min_reset_every)
 
     # ---------------------------------------------------------------- render
 

@@ -1,24 +1,28 @@
 """Tiled front-to-back alpha compositing of projected Gaussians, in vectorised torch.
 
-The image (window) is cut into 16 x 16 tiles; every visible Gaussian is listed in each
-tile its bounding box touches, the lists are sorted by depth, and all tiles are
-composited together, ``slots`` Gaussians of every tile list at a time: one step works on
-a (tiles, slots, 256 pixels) block, so there is no Python loop over Gaussians or pixels.
-A tile leaves the sweep when its list ends or all its pixels are opaque (T < 1e-4).
+Binning as gsplat: every visible Gaussian is listed in each 16 x 16 tile its bounding
+box touches and the lists are sorted by depth. For compositing, each tile's list is then
+culled per 8 x 8 quarter (most Gaussians of a trained scene are a few pixels wide, so
+this halves the pixel work on a CPU). All tiles are composited together, ``SLOTS``
+Gaussians of every list at a time: one step works on a (tiles, pixels, slots) block, so
+there is no Python loop over Gaussians or pixels. A tile leaves the sweep when its list
+ends or all its pixels are opaque.
 
 Per pixel, as in gsplat and the 3DGS reference: alpha = min(0.999, o exp(-sigma)),
-Gaussians with alpha < 1/255 are skipped, and compositing stops before the Gaussian
+Gaussians with alpha <= 1/255 are skipped, and compositing stops before the Gaussian
 that would bring the transmittance to 1e-4 or below.
 
-The backward pass is hand-written (:class:`_CompositeTiles`): it replays the forward
-sweep and needs only the per-pixel results, so memory stays O(pixels + intersections)
-instead of autograd's O(intersections x 256).
+The backward pass is hand-written (:class:`_CompositeTiles`, the same derivatives as
+gsplat's kernels, vectorised per step). It reuses the forward pass's per-step alphas and
+transmittances when they fit in ``CACHE_ELEMENTS`` and replays the forward sweep
+otherwise, so memory stays bounded for large renders.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Iterator, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -26,11 +30,13 @@ from torch import Tensor
 
 from rainyscape.fields.gaussians.projection import ALPHA_THRESHOLD, Projection
 
-TILE_SIZE = 16
+TILE_SIZE = 16  # binning tiles
+SUBTILE_SIZE = 8  # compositing tiles: quarters of a binning tile
 MAX_ALPHA = 0.999
 T_MIN = 1e-4
 SLOTS = 32  # Gaussians per tile list handled in one step
-BLOCK_ELEMENTS = 1 << 20  # bound on a (tiles, slots, pixels) step's size: memory stays flat
+BLOCK_ELEMENTS = 1 << 20  # bound on a (tiles, pixels, slots) step's size: memory stays flat
+CACHE_ELEMENTS = 1 << 25  # forward steps kept for the backward pass (3 float arrays each)
 
 
 @dataclass
@@ -78,6 +84,40 @@ def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int = TI
     return Binning(ids, tile_start, tile_count, tiles_x, tiles_y, tile_size)
 
 
+@torch.no_grad()
+def split_tiles(binning: Binning, proj: Projection, sub: int = SUBTILE_SIZE) -> Binning:
+    """The same intersections on a grid of ``sub``-pixel tiles (a divisor of the binning
+    tile): each tile's depth-sorted list is split among the sub-tiles its Gaussians'
+    bounding boxes touch, keeping the depth order."""
+    s = binning.tile_size
+    if sub >= s or s % sub:
+        return binning
+    f = s // sub
+    dev = binning.gaussian_ids.device
+    per_cam = binning.tiles_x * binning.tiles_y
+    tile = torch.repeat_interleave(torch.arange(len(binning.tile_count), device=dev),
+                                   binning.tile_count)
+    ids = binning.gaussian_ids
+    cam, t = tile // per_cam, tile % per_cam
+    tx, ty = t % binning.tiles_x, t // binning.tiles_x
+    mean = proj.means2d.detach().reshape(-1, 2)[ids]
+    rad = proj.radii.reshape(-1, 2)[ids].to(mean.dtype)
+    lo = torch.floor((mean - rad) / sub).long()  # the Gaussian's sub-tile range
+    hi = torch.ceil((mean + rad) / sub).long()
+    q = torch.arange(f, device=dev)
+    cols = tx[:, None] * f + q  # (M, f) sub-tile columns of the entry's tile
+    rows = ty[:, None] * f + q
+    in_x = (cols >= lo[:, :1]) & (cols < hi[:, :1])
+    in_y = (rows >= lo[:, 1:]) & (rows < hi[:, 1:])
+    hit = in_y[:, :, None] & in_x[:, None, :]  # (M, f rows, f cols)
+    entry, qy, qx = hit.nonzero(as_tuple=True)
+    sub_x, sub_y = binning.tiles_x * f, binning.tiles_y * f
+    sub_tile = cam[entry] * (sub_x * sub_y) + rows[entry, qy] * sub_x + cols[entry, qx]
+    order = torch.argsort(sub_tile, stable=True)  # entries were in (tile, depth) order
+    count = torch.bincount(sub_tile, minlength=len(binning.tile_count) * f * f)
+    return Binning(ids[entry[order]], torch.cumsum(count, 0) - count, count, sub_x, sub_y, sub)
+
+
 def _tile_geometry(binning: Binning, width: int, height: int, dtype, device):
     """Tile origins (tiles, 2), pixel-centre offsets inside a tile (s,) and which tile
     pixels fall inside the window (tiles, s * s)."""
@@ -92,10 +132,25 @@ def _tile_geometry(binning: Binning, width: int, height: int, dtype, device):
     return origin.to(dtype), centres, inside.reshape(len(t), s * s)
 
 
-def _chunk_alpha(means2d, conics, opacities, gid, slot_ok, origin, centres):
-    """Alpha (A, P, K) of K Gaussians of A tiles at the tiles' P pixels, plus the per-slot
-    quantities the backward pass needs. Slots are the last (contiguous) axis: the
-    transmittance scans run along it, which is much faster than along a middle axis."""
+class Step(NamedTuple):
+    """One sweep step: K list slots of A tiles, everything the backward pass needs."""
+
+    active: Tensor  # (A,) tiles
+    gid: Tensor  # (A, K) Gaussians (empty slots point at a real one, with zero weight)
+    con: Tensor  # (A, 3, K) conics
+    op: Tensor  # (A, K) opacities, 0 in empty slots
+    dx: Tensor  # (A, s, K) mean minus pixel-column centre
+    dy: Tensor  # (A, s, K) mean minus pixel-row centre
+    alpha: Tensor  # (A, P, K)
+    t_after: Tensor  # (A, P, K) transmittance after each slot
+    weight: Tensor  # (A, P, K) blending weight T_before * alpha
+    keep: Tensor | None  # (A, P, K) slots before each pixel's stop; None: all
+
+
+def _step_alpha(means2d, conics, opacities, gid, slot_ok, origin, centres):
+    """Alpha (A, P, K) of K Gaussians of A tiles at the tiles' P pixels, and the per-slot
+    quantities it came from. Slots are the last (contiguous) axis: the transmittance
+    scans run along it, which is much faster than along a middle axis."""
     a, k = gid.shape
     s = len(centres)
     flat = gid.reshape(-1)
@@ -112,56 +167,36 @@ def _chunk_alpha(means2d, conics, opacities, gid, slot_ok, origin, centres):
     # compute; exp(-20) is far below the 1/255 threshold, so no kept alpha changes.
     raw = neg_sigma.clamp_(min=-20.0).exp_().mul_(op[:, None, None]).reshape(a, s * s, k)
     alpha = F.threshold(raw, ALPHA_THRESHOLD, 0.0).clamp_(max=MAX_ALPHA)
-    return alpha, raw, op, con, dx, dy
+    return alpha, op, con, dx, dy
 
 
 def _transmittance(alpha: Tensor, t_start: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
     """Transmittance after each slot (A, P, K), blending weights (A, P, K), and the mask
-    of kept slots when some pixel is or gets finished in this chunk (else None: all kept).
+    of kept slots when some pixel is or gets finished in this step (else None: all kept).
 
     ``t_start`` is 0 for finished pixels, which then get no weight and no gradient."""
-    t_incl = torch.cumprod(torch.rsub(alpha, 1.0), -1).mul_(t_start[..., None])
-    weight = torch.empty_like(t_incl)  # T_before * alpha = T_before - T_after
-    torch.sub(t_start, t_incl[..., 0], out=weight[..., 0])
-    torch.sub(t_incl[..., :-1], t_incl[..., 1:], out=weight[..., 1:])
+    t_after = torch.cumprod(torch.rsub(alpha, 1.0), -1).mul_(t_start[..., None])
+    weight = torch.empty_like(t_after)  # T_before * alpha = T_before - T_after
+    torch.sub(t_start, t_after[..., 0], out=weight[..., 0])
+    torch.sub(t_after[..., :-1], t_after[..., 1:], out=weight[..., 1:])
     keep = None
-    if bool((t_incl[..., -1] <= T_MIN).any()):
-        keep = t_incl > T_MIN  # a prefix of each pixel's list
+    if bool((t_after[..., -1] <= T_MIN).any()):
+        keep = t_after > T_MIN  # a prefix of each pixel's list
         weight.mul_(keep)
-    return t_incl, weight, keep
+    return t_after, weight, keep
 
 
-def _sweep(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
-           binning: Binning, width: int, height: int, upstream=None):
-    """Composite all tiles front to back; with ``upstream`` also accumulate gradients.
-
-    Forward: returns features and alpha, channels first: (tiles, D + 1, P).
-    Backward (``upstream`` = (g_out, out), both (tiles, D + 1, P), last channel alpha):
-    returns the gradients of means2d, conics, opacities and features.
-    """
+def _sweep(means2d: Tensor, conics: Tensor, opacities: Tensor, binning: Binning,
+           width: int, height: int) -> Iterator[Step]:
+    """The front-to-back sweep over all tiles, one :class:`Step` at a time."""
     dev, dt = means2d.device, means2d.dtype
-    n_tiles = len(binning.tile_count)
-    s = binning.tile_size
-    npx = s * s
     origin, centres, inside = _tile_geometry(binning, width, height, dt, dev)
-    feats = torch.cat([features, torch.ones_like(features[:, :1])], 1)  # alpha = sum of weights
-    d1 = feats.shape[1]
     # Transmittance; 0 marks finished pixels (outside the window, or T would reach T_MIN).
     trans = inside.to(dt)
     ids_all = binning.gaussian_ids
     last = max(len(ids_all) - 1, 0)
     slot_range = torch.arange(SLOTS, device=dev)
-    if upstream is None:
-        acc = torch.zeros(n_tiles, d1, npx, device=dev, dtype=dt)
-    else:
-        g_out, out = upstream
-        total = (g_out * out).sum(1)  # per pixel: sum over its whole list of w_k (g . f_k)
-        prefix = torch.zeros(n_tiles, npx, device=dev, dtype=dt)
-        grad_mean = torch.zeros_like(means2d)
-        grad_conic = torch.zeros_like(conics)
-        grad_opac = torch.zeros_like(opacities)
-        grad_feat = torch.zeros_like(features)
-    max_tiles = max(1, BLOCK_ELEMENTS // (SLOTS * npx))
+    max_tiles = max(1, BLOCK_ELEMENTS // (SLOTS * inside.shape[1]))
     busy = (binning.tile_count > 0).nonzero().squeeze(1)
     for block in busy.split(max_tiles):
         active, start = block, 0
@@ -172,70 +207,107 @@ def _sweep(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
             slot_ok = slot[None] < count[:, None]  # (A, K)
             pos = (binning.tile_start.index_select(0, active)[:, None] + slot).clamp(max=last)
             gid = ids_all.index_select(0, pos.reshape(-1)).view(a, SLOTS)
-            alpha, raw, op, con, dx, dy = _chunk_alpha(means2d, conics, opacities, gid, slot_ok,
-                                                       origin.index_select(0, active), centres)
+            alpha, op, con, dx, dy = _step_alpha(means2d, conics, opacities, gid, slot_ok,
+                                                 origin.index_select(0, active), centres)
             t_start = trans.index_select(0, active)
-            t_incl, weight, keep = _transmittance(alpha, t_start)
-            flat = gid.reshape(-1)  # empty slots point at a real Gaussian, with zero gradient
-            feat_t = feats.index_select(0, flat).view(a, SLOTS, d1).transpose(1, 2)  # (A, D+1, K)
-            if upstream is None:
-                acc.index_add_(0, active, torch.bmm(feat_t, weight.transpose(1, 2)))
-            else:
-                g = g_out.index_select(0, active)  # (A, D + 1, P)
-                g_dot_f = torch.bmm(g.transpose(1, 2), feat_t)  # (A, P, K)
-                run = weight * g_dot_f
-                run[..., 0] += prefix.index_select(0, active)
-                run = torch.cumsum(run, -1)
-                prefix.index_copy_(0, active, run[..., -1])
-                # dL/dalpha_k = (T_after_k (g . f_k) - sum_{j > k} w_j (g . f_j)) / (1 - alpha_k)
-                g_alpha = (t_incl * g_dot_f).sub_(total.index_select(0, active)[..., None]).add_(run)
-                g_alpha.div_(torch.rsub(alpha, 1.0))
-                if keep is not None:
-                    g_alpha.mul_(keep)
-                # alpha = o exp(-sigma) where neither the threshold nor the clamp is active
-                live = raw * ((alpha > 0) & (alpha < MAX_ALPHA))
-                g_neg_sigma = g_alpha.mul_(live)  # dL/d(-sigma) = dL/dalpha * alpha
-                grad_o = g_neg_sigma.sum(1) / op.clamp_min(1e-30)  # (A, K)
-                gs = g_neg_sigma.reshape(a, s, s, SLOTS)  # rows, columns, slots
-                col_sum, row_sum = gs.sum(1), gs.sum(2)  # (A, s, K)
-                row_dx = (gs * dx[:, None]).sum(2)  # per row: sum over columns of g dx
-                sx, sy = (col_sum * dx).sum(1), (row_sum * dy).sum(1)
-                sxx, syy = (col_sum * dx * dx).sum(1), (row_sum * dy * dy).sum(1)
-                sxy = (row_dx * dy).sum(1)
-                ca, cb, cc = con.unbind(1)
-                # d(-sigma)/d mean = -(a dx + b dy, b dx + c dy); d(-sigma)/d conic = -(dx^2/2, dx dy, dy^2/2)
-                gm = -torch.stack([ca * sx + cb * sy, cb * sx + cc * sy], -1)
-                gc = -torch.stack([0.5 * sxx, sxy, 0.5 * syy], -1)
-                gf = torch.bmm(g[:, :-1], weight).transpose(1, 2)  # (A, K, D)
-                grad_mean.index_add_(0, flat, gm.reshape(-1, 2))
-                grad_conic.index_add_(0, flat, gc.reshape(-1, 3))
-                grad_opac.index_add_(0, flat, grad_o.reshape(-1))
-                grad_feat.index_add_(0, flat, gf.reshape(-1, d1 - 1))
+            t_after, weight, keep = _transmittance(alpha, t_start)
+            yield Step(active, gid, con, op, dx, dy, alpha, t_after, weight, keep)
             if keep is None:
-                t_end = t_incl[..., -1]
+                t_end = t_after[..., -1]
             else:
                 t_end = (t_start - weight.sum(-1)) * keep[..., -1]
             trans.index_copy_(0, active, t_end)
             start += SLOTS
             active = active[(count > start) & (t_end > 0).any(1)]
-    if upstream is None:
-        return acc
+
+
+def _forward(means2d, conics, opacities, features, binning, width, height, cache):
+    """Features and alpha, channels first (tiles, D + 1, P); fills ``cache`` with the
+    steps while they fit (else sets it to None: the backward pass replays the sweep)."""
+    feats = torch.cat([features, torch.ones_like(features[:, :1])], 1)  # alpha = sum of weights
+    npx = binning.tile_size ** 2
+    acc = torch.zeros(len(binning.tile_count), feats.shape[1], npx, device=feats.device,
+                      dtype=feats.dtype)
+    kept = 0
+    for st in _sweep(means2d, conics, opacities, binning, width, height):
+        a = len(st.active)
+        feat_t = feats.index_select(0, st.gid.reshape(-1)).view(a, SLOTS, -1).transpose(1, 2)
+        acc.index_add_(0, st.active, torch.bmm(feat_t, st.weight.transpose(1, 2)))
+        if cache is not None:
+            kept += st.alpha.numel()
+            if kept <= CACHE_ELEMENTS:
+                cache.append(st)
+            else:
+                cache = None
+    return acc, cache
+
+
+def _backward(means2d, conics, opacities, features, binning, width, height, g_out, out, steps):
+    """Gradients of means2d, conics, opacities and features from those of the output."""
+    feats = torch.cat([features, torch.ones_like(features[:, :1])], 1)
+    d1 = feats.shape[1]
+    s = binning.tile_size
+    total = (g_out * out).sum(1)  # per pixel: sum over its whole list of w_k (g . f_k)
+    prefix = torch.zeros_like(total)
+    grad_mean = torch.zeros_like(means2d)
+    grad_conic = torch.zeros_like(conics)
+    grad_opac = torch.zeros_like(opacities)
+    grad_feat = torch.zeros_like(features)
+    if steps is None:
+        steps = _sweep(means2d, conics, opacities, binning, width, height)
+    for st in steps:
+        a = len(st.active)
+        flat = st.gid.reshape(-1)
+        feat_t = feats.index_select(0, flat).view(a, SLOTS, d1).transpose(1, 2)  # (A, D+1, K)
+        g = g_out.index_select(0, st.active)  # (A, D + 1, P)
+        g_dot_f = torch.bmm(g.transpose(1, 2), feat_t)  # (A, P, K)
+        run = st.weight * g_dot_f
+        run[..., 0] += prefix.index_select(0, st.active)
+        run = torch.cumsum(run, -1)
+        prefix.index_copy_(0, st.active, run[..., -1])
+        # dL/dalpha_k = (T_after_k (g . f_k) - sum_{j > k} w_j (g . f_j)) / (1 - alpha_k)
+        g_alpha = (st.t_after * g_dot_f).sub_(total.index_select(0, st.active)[..., None]).add_(run)
+        g_alpha.div_(torch.rsub(st.alpha, 1.0))
+        if st.keep is not None:
+            g_alpha.mul_(st.keep)
+        # alpha = o exp(-sigma) where neither the 1/255 threshold nor the clamp is active
+        live = st.alpha.masked_fill(st.alpha >= MAX_ALPHA, 0.0)
+        g_neg_sigma = g_alpha.mul_(live)  # dL/d(-sigma) = dL/dalpha * alpha
+        grad_o = g_neg_sigma.sum(1) / st.op.clamp_min(1e-30)  # (A, K)
+        gs = g_neg_sigma.reshape(a, s, s, SLOTS)  # rows, columns, slots
+        col_sum, row_sum = gs.sum(1), gs.sum(2)  # (A, s, K)
+        row_dx = (gs * st.dx[:, None]).sum(2)  # per row: sum over columns of g dx
+        sx, sy = (col_sum * st.dx).sum(1), (row_sum * st.dy).sum(1)
+        sxx, syy = (col_sum * st.dx * st.dx).sum(1), (row_sum * st.dy * st.dy).sum(1)
+        sxy = (row_dx * st.dy).sum(1)
+        ca, cb, cc = st.con.unbind(1)
+        # d(-sigma)/d mean = -(a dx + b dy, b dx + c dy); d(-sigma)/d conic = -(dx^2/2, dx dy, dy^2/2)
+        gm = -torch.stack([ca * sx + cb * sy, cb * sx + cc * sy], -1)
+        gc = -torch.stack([0.5 * sxx, sxy, 0.5 * syy], -1)
+        gf = torch.bmm(g[:, :-1], st.weight).transpose(1, 2)  # (A, K, D)
+        grad_mean.index_add_(0, flat, gm.reshape(-1, 2))
+        grad_conic.index_add_(0, flat, gc.reshape(-1, 3))
+        grad_opac.index_add_(0, flat, grad_o.reshape(-1))
+        grad_feat.index_add_(0, flat, gf.reshape(-1, d1 - 1))
     return grad_mean, grad_conic, grad_opac, grad_feat
 
 
 class _CompositeTiles(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, binning, width, height):
-        out = _sweep(means2d, conics, opacities, features, binning, width, height)
-        ctx.binning, ctx.size = binning, (width, height)
+        grad = any(ctx.needs_input_grad[:4])
+        out, cache = _forward(means2d, conics, opacities, features, binning, width, height,
+                              [] if grad else None)
+        ctx.binning, ctx.size, ctx.cache = binning, (width, height), cache
         ctx.save_for_backward(means2d, conics, opacities, features, out)
         return out
 
     @staticmethod
     def backward(ctx, g_out):
         means2d, conics, opacities, features, out = ctx.saved_tensors
-        grads = _sweep(means2d, conics, opacities, features, ctx.binning, *ctx.size,
-                       upstream=(g_out.contiguous(), out))
+        grads = _backward(means2d, conics, opacities, features, ctx.binning, *ctx.size,
+                          g_out.contiguous(), out, ctx.cache)
+        ctx.cache = None
         return (*grads, None, None, None)
 
 
@@ -247,11 +319,11 @@ def _untile(x: Tensor, c: int, binning: Binning, width: int, height: int) -> Ten
 
 
 def composite(proj: Projection, features: Tensor, width: int, height: int,
-              tile_size: int = TILE_SIZE) -> tuple[Tensor, Tensor]:
+              tile_size: int = TILE_SIZE, subtile_size: int = SUBTILE_SIZE) -> tuple[Tensor, Tensor]:
     """Alpha-composite projected Gaussians into (C, height, width, D) features and
     (C, height, width, 1) alpha. ``features`` (C, N, D) are per-camera Gaussian values."""
     c, n = proj.radii.shape[:2]
-    binning = bin_gaussians(proj, width, height, tile_size)
+    binning = split_tiles(bin_gaussians(proj, width, height, tile_size), proj, subtile_size)
     out = _CompositeTiles.apply(
         proj.means2d.reshape(c * n, 2), proj.conics.reshape(c * n, 3),
         proj.opacities.reshape(c * n), features.reshape(c * n, features.shape[-1]), binning,

@@ -22,7 +22,7 @@ def _composite_pixels(mean: Tensor, conic: Tensor, opac: Tensor, feat: Tensor,
     dy = mean[:, 1, None] - py[None]
     sigma = 0.5 * conic[:, 0, None] * dx ** 2 + conic[:, 1, None] * dx * dy \
         + 0.5 * conic[:, 2, None] * dy ** 2
-    raw = opac[:, None] * torch.exp(-sigma)
+    raw = opac[:, None] * torch.exp(-sigma.clamp(max=20.0))  # no denormals; all far below 1/255
     alpha = raw.clamp(max=MAX_ALPHA) * (raw > ALPHA_THRESHOLD)
     t_incl = torch.cumprod(1.0 - alpha, 0)
     t_excl = torch.cat([torch.ones_like(t_incl[:1]), t_incl[:-1]], 0)

@@ -1,0 +1,142 @@
+"""NeRF field benchmarks: training step time of both fields, and quality after a time budget.
+
+    python benchmarks/fields.py speed [--grid-steps 300] [--mlp-steps 3]
+    python benchmarks/fields.py quality --method nerf --minutes 5 [--iters N]
+    python benchmarks/fields.py quality --method vanilla-nerf --minutes 5 15
+
+Both run on the simulator's demo scene trained on its CLEAN images (the ceiling the rain
+work aims at), or on --data DIR (a maya-csv scene with an images_wo_rain folder).
+
+speed: one process, the paper's batch (4096 random rays per step) for both fields: nerf-mlp
+with 64 + 64 samples (the vanilla-nerf config), and the grid field (the nerf config) over a
+whole schedule of --grid-steps (it gets cheaper per step as empty space is carved and dearer
+as it grows), reporting its mean and final-resolution step time and the ratio.
+
+quality: trains METHOD until each of the --minutes marks of training wall time (evaluation
+time excluded), evaluating held-out views (PSNR, SSIM vs clean) at each mark. --iters sets
+the schedule length (default: the method's); a schedule that ends earlier ends the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+
+def clean_demo_overrides(data: str) -> list[str]:
+    return ["dataparser=maya-csv", "dataparser.images=images_wo_rain"] + ([f"data={data}"] if data else [])
+
+
+def build(method: str, overrides: list[str], out: Path):
+    from rainyscape import config
+    from rainyscape.engine.pipeline import build_pipeline, load_scene, resolve_device
+    from rainyscape.engine.trainer import Trainer, seed_everything
+
+    cfg = config.method_config(method, overrides)
+    seed_everything(cfg.trainer.seed)
+    scene = load_scene(cfg)
+    pipeline = build_pipeline(cfg, scene, resolve_device(cfg.trainer.device))
+    out.mkdir(parents=True, exist_ok=True)
+    return cfg, Trainer(pipeline, out)
+
+
+def timed_steps(trainer, count: int) -> list[float]:
+    times = []
+    for _ in range(count):
+        t0 = time.perf_counter()
+        trainer.train_step()
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+@torch.no_grad()
+def heldout_metrics(trainer) -> dict:
+    from rainyscape.eval.metrics import psnr, ssim
+
+    scene, psnrs, ssims = trainer.scene, [], []
+    for i in scene.eval_indices:
+        rgb = trainer.render_view(i).rgb.clamp(0, 1)
+        reference = scene.clean_images if scene.clean_images is not None else scene.images
+        clean = reference[i].to(trainer.device).permute(2, 0, 1)[None].float() / 255
+        psnrs.append(float(psnr(rgb, clean)))
+        ssims.append(float(ssim(rgb, clean)))
+    return {"heldout_psnr": sum(psnrs) / len(psnrs), "heldout_ssim": sum(ssims) / len(ssims),
+            "views": len(psnrs)}
+
+
+def speed(args) -> dict:
+    base = clean_demo_overrides(args.data) + ["trainer.warmup_patches=4096", "trainer.warmup_patch_size=1"]
+    out = Path(args.out)
+    _, grid = build("nerf", base + [f"trainer.max_iters={args.grid_steps}",
+                                    f"field.lr_decay_steps={args.grid_steps}"], out / "speed-grid")
+    grid_times = timed_steps(grid, args.grid_steps)
+    tail = grid_times[-max(1, args.grid_steps // 5):]
+    _, mlp = build("vanilla-nerf", base, out / "speed-mlp")
+    mlp.train_step()  # the first step pays for allocations
+    mlp_times = timed_steps(mlp, args.mlp_steps)
+    mlp_step = sum(mlp_times) / len(mlp_times)
+    result = {
+        "rays_per_step": 4096, "threads": torch.get_num_threads(),
+        "nerf_mlp_step_s": mlp_step,
+        "grid_mean_step_s": sum(grid_times) / len(grid_times),
+        "grid_final_step_s": sum(tail) / len(tail),
+        "grid_final_resolution": grid.p.field.resolution,
+        "grid_occupied_fraction": grid.p.field.occupancy.fraction(),
+    }
+    result["ratio_mean"] = mlp_step / result["grid_mean_step_s"]
+    result["ratio_final"] = mlp_step / result["grid_final_step_s"]
+    return result
+
+
+def quality(args) -> dict:
+    overrides = clean_demo_overrides(args.data) + list(args.overrides)
+    if args.iters:
+        overrides += [f"trainer.max_iters={args.iters}"]
+        if args.method == "nerf":
+            overrides += [f"field.lr_decay_steps={args.iters}"]
+    cfg, trainer = build(args.method, overrides, Path(args.out) / f"quality-{args.method}")
+    marks = sorted(args.minutes)
+    results, trained = [], 0.0
+    for mark in marks:
+        while trained < mark * 60 and trainer.step < cfg.trainer.max_iters:
+            t0 = time.perf_counter()
+            trainer.train_step()
+            trained += time.perf_counter() - t0
+        results.append({"minutes": mark, "train_seconds": round(trained, 1), "steps": trainer.step,
+                        **heldout_metrics(trainer)})
+        print(json.dumps(results[-1]), flush=True)
+    return {"method": args.method, "max_iters": cfg.trainer.max_iters, "threads": torch.get_num_threads(),
+            "results": results}
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="mode", required=True)
+    sp = sub.add_parser("speed")
+    sp.add_argument("--grid-steps", type=int, default=300)
+    sp.add_argument("--mlp-steps", type=int, default=3)
+    q = sub.add_parser("quality")
+    q.add_argument("--method", default="nerf", choices=["nerf", "vanilla-nerf"])
+    q.add_argument("--minutes", type=float, nargs="+", default=[5.0])
+    q.add_argument("--iters", type=int, default=0, help="schedule length (0: the method's)")
+    q.add_argument("overrides", nargs="*", help="extra key=value config overrides")
+    for p in (sp, q):
+        p.add_argument("--data", default="", help="maya-csv scene with images_wo_rain (default: demo)")
+        p.add_argument("--out", default="outputs/benchmarks/fields")
+    args = parser.parse_args(argv)
+    result = speed(args) if args.mode == "speed" else quality(args)
+    print(json.dumps(result, indent=2))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    name = "speed" if args.mode == "speed" else f"quality-{args.method}"
+    (out / f"{name}.json").write_text(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
