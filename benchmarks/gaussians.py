@@ -12,6 +12,10 @@ The scene: N random Gaussians filling a 2.4 x 2.4 x 1 slab 4 units in front of o
 render + L1 loss + backward + Adam on the six parameter groups, through GaussianField
 exactly as training runs it; "patch" is a 64 x 64 window, "full" the whole image.
 Times are medians over ``--repeats`` runs, wall clock and process CPU time (all threads).
+The dense step (where Gaussians x pixels <= ``--dense-evals``; timed once, it is slow) is
+the same projection composited by the brute-force reference (every pixel against every
+Gaussian, plain autograd), back-propagated one pixel chunk at a time so its memory stays
+bounded; it leaves out SH and Adam, so its ratio to our full step understates the gain.
 Quality is measured with rs-bench (see docs/benchmarks.md).
 """
 
@@ -27,7 +31,7 @@ from rainyscape.cameras import Cameras, Window
 from rainyscape.fields.gaussians.field import GaussianField
 from rainyscape.fields.gaussians.projection import project_gaussians
 from rainyscape.fields.gaussians.rasterize import rasterize
-from rainyscape.fields.gaussians.reference import composite_dense
+from rainyscape.fields.gaussians.reference import composite_pixels
 from rainyscape.scene import SceneData
 
 SIZE = 256
@@ -89,17 +93,29 @@ def train_step_fn(field: GaussianField, cams: Cameras, window: Window):
 
 
 def dense_step_fn(field: GaussianField, cams: Cameras, window: Window):
-    """The same projection, composited by the naive all-pixels x all-Gaussians reference."""
+    """The same projection, composited by the naive all-pixels x all-Gaussians reference
+    (plain autograd). Memory stays bounded: each pixel chunk is composited and
+    back-propagated on its own into the projection's outputs, which are then
+    back-propagated once through the projection."""
     p = field.params
+    ii, jj = torch.meshgrid(torch.arange(window.height), torch.arange(window.width), indexing="ij")
+    px, py = jj.reshape(-1) + 0.5, ii.reshape(-1) + 0.5
 
     def step():
         proj = project_gaussians(p["means"], p["quats"], p["scales"].exp(),
                                  torch.sigmoid(p["opacities"]), cams.w2c(), cams.K(), SIZE, SIZE,
                                  window.x0, window.y0, window.width, window.height)
-        feats = torch.cat([torch.sigmoid(p["sh0"][:, 0])[None], proj.depths[..., None]], -1)
-        chunk = max(256, (1 << 24) // max(len(p["means"]), 1))  # ~64 MB per (N, pixels) array
-        out, alpha = composite_dense(proj, feats, window.width, window.height, pixel_chunk=chunk)
-        (out.mean() + alpha.mean()).backward()
+        order = torch.argsort(proj.depths[0].detach(), stable=True)  # all are in front
+        feats = torch.cat([torch.sigmoid(p["sh0"][:, 0]), proj.depths[0, :, None]], -1)
+        outputs = [proj.means2d[0], proj.conics[0], proj.opacities[0], feats]
+        leaves = [t.detach()[order].requires_grad_(True) for t in outputs]
+        chunk = max(16, (1 << 24) // max(len(order), 1))  # ~64 MB per (N, pixels) array
+        for x, y in zip(px.split(chunk), py.split(chunk)):
+            out, alpha = composite_pixels(*leaves, x, y)
+            ((out.sum() + alpha.sum()) / len(px)).backward()
+        grads = [torch.empty_like(t).index_copy_(0, order, leaf.grad)
+                 for t, leaf in zip(outputs, leaves)]
+        torch.autograd.backward(outputs, grads)
         for q in p.values():
             q.grad = None
 

@@ -83,7 +83,7 @@ def test_render_window_and_training_extras(tiny_scene):
     window = Window(torch.tensor([8, 20]), torch.tensor([4, 16]), 24, 20)
     out = field.render(cams, window)
     assert out.rgb.shape == (2, 3, 20, 24) and out.depth.shape == (2, 1, 20, 24)
-    assert out.acc.shape == (2, 1, 20, 24) and 0.3 < float(out.acc.mean()) <= 1
+    assert out.acc.shape == (2, 1, 20, 24) and 0.3 < float(out.acc.detach().mean()) <= 1
     out.rgb.mean().backward()
     means2d = out.extras["means2d"]
     assert means2d.shape == (2, 2000, 2) and means2d.grad is not None
@@ -285,14 +285,17 @@ def test_method_configs():
 
 def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):
     """A few hundred steps of 3dgs on the 48 px tiny scene beat the initial render on the
-    held-out view (clean image) by a margin measured on this scene."""
+    held-out view (clean image) by a margin measured on this scene: 12.96 -> 20.23-20.36 dB
+    over three seeds. Growth is capped at 5000 Gaussians (a 200-step schedule densifies
+    every step; uncapped, 48 px views grow to 40000 and the fit takes 5x longer)."""
     from rainyscape.engine.trainer import Trainer
     from rainyscape.eval.evaluate import render_image
     from rainyscape.eval.metrics import psnr
 
     cfg = method_config("3dgs", ["trainer.max_iters=200", "trainer.warmup_patch_size=0",
                                  "trainer.eval_every=0", "trainer.checkpoint_every=0",
-                                 "trainer.progress=false", "field.init_points=3000"])
+                                 "trainer.progress=false", "field.init_points=3000",
+                                 "field.max_gaussians=5000"])
     torch.manual_seed(0)
     pipe = build_pipeline(cfg, tiny_scene, torch.device("cpu"))
     view = tiny_scene.eval_indices[0]

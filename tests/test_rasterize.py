@@ -12,11 +12,12 @@ import torch
 
 from rainyscape.cameras import Window
 from rainyscape.errors import ConfigError
-from rainyscape.fields.gaussians.projection import project_gaussians
+from rainyscape.fields.gaussians.projection import candidate_gaussians, project_gaussians
 from rainyscape.fields.gaussians.rasterize import rasterize, resolve_backend
 from rainyscape.fields.gaussians.rasterize_gsplat import gsplat_installed
-from rainyscape.fields.gaussians.rasterize_torch import bin_gaussians, composite
+from rainyscape.fields.gaussians.rasterize_torch import bin_gaussians, composite, min_sigma_in_boxes
 from rainyscape.fields.gaussians.reference import composite_dense
+from rainyscape.fields.gaussians.sh import sh_to_rgb
 
 W, H = 45, 37  # not multiples of the 16-pixel tile
 
@@ -154,6 +155,93 @@ def test_window_bins_only_its_tiles():
     assert len(b_win.tile_count) == 4 and len(b_full.tile_count) == 80
     assert len(b_win.gaussian_ids) < len(b_full.gaussian_ids) / 8
     assert win.visible.sum() < full.visible.sum() / 2
+
+
+def test_min_sigma_in_boxes_matches_a_dense_search():
+    g = torch.Generator().manual_seed(12)
+    m = 500
+    lo = (torch.rand(m, 2, generator=g, dtype=torch.float64) - 0.5) * 20
+    hi = lo + torch.rand(m, 2, generator=g, dtype=torch.float64) * 8
+    cov = torch.randn(m, 2, 2, generator=g, dtype=torch.float64)
+    cov = cov @ cov.transpose(1, 2) + 0.3 * torch.eye(2, dtype=torch.float64)
+    inv = torch.linalg.inv(cov)
+    conics = torch.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
+    t = torch.linspace(0, 1, 201, dtype=torch.float64)
+    dx = lo[:, 0, None, None] + (hi - lo)[:, 0, None, None] * t[None, None, :]
+    dy = lo[:, 1, None, None] + (hi - lo)[:, 1, None, None] * t[None, :, None]
+    a, b, c = (v[:, None, None] for v in conics.unbind(-1))
+    dense = (0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy).flatten(1).amin(1)
+    exact = min_sigma_in_boxes(lo, hi, conics)
+    assert (exact <= dense + 1e-12).all()  # a true minimum: never above a sampled point
+    assert torch.allclose(exact, dense, rtol=1e-3, atol=1e-3)  # and reached on the grid
+    assert (exact == 0).any() and (exact > 0).any()
+
+
+def test_culling_keeps_every_gaussian_the_projection_sees():
+    params, viewmats, ks = random_scene(3000, seed=9)
+    means, quats, scales, opacities, _ = params
+    varied = scales * torch.rand(len(scales), 1, generator=torch.Generator().manual_seed(0)) * 3
+    for x0, y0, w, h in ((0, 0, W, H), (30, 4, 16, 16), (-5, 20, 12, 30)):
+        args = (torch.tensor([x0, x0 + 3]), torch.tensor([y0, y0 - 2]), w, h)
+        ids = candidate_gaussians(means, varied, opacities, viewmats, ks, W, H, *args)
+        seen = project_gaussians(means, quats, varied, opacities, viewmats, ks, W, H,
+                                 *args).visible.any(0).nonzero().squeeze(1)
+        assert set(seen.tolist()) <= set(ids.tolist())
+    # A 32 x 32 patch of a 160 x 128 image that the slab fills: most are culled, and the
+    # bound is not much looser than the projection.
+    ks = torch.tensor([[[200.0, 0, 80], [0, 200, 64], [0, 0, 1]]])
+    args = (torch.tensor([48]), torch.tensor([32]), 32, 32)
+    scales = scales * 0.2  # trained scenes: many small Gaussians
+    ids = candidate_gaussians(means, scales, opacities, viewmats[:1], ks, 160, 128, *args)
+    seen = project_gaussians(means, quats, scales, opacities, viewmats[:1], ks, 160, 128,
+                             *args).visible.sum()
+    assert len(ids) < len(means) / 4 and len(ids) < 2 * seen
+
+
+def test_culled_window_matches_dense_reference():
+    """The rasteriser's culled path: images and gradients of every parameter equal the
+    dense reference over all Gaussians; the 2D means' gradient has all N rows."""
+    params, viewmats, ks = random_scene(400, seed=10, dtype=torch.float64)
+    for p in params:
+        p.requires_grad_(True)
+    means, quats, scales, opacities, colors = params
+    window = Window(torch.tensor([20, 2]), torch.tensor([6, 15]), 16, 16)
+    ids = candidate_gaussians(means, scales, opacities, viewmats, ks, W, H, window.x0,
+                              window.y0, 16, 16)
+    assert len(ids) < 400  # the culled path is the one under test
+    out = rasterize(*params, viewmats, ks, W, H, window, backend="torch")
+    out.means2d.retain_grad()
+    proj = project_gaussians(means, quats, scales, opacities, viewmats, ks, W, H,
+                             window.x0, window.y0, 16, 16)
+    feats = torch.cat([colors[None].expand(2, -1, -1), proj.depths[..., None]], -1)
+    ref, ref_alpha = composite_dense(proj, feats, 16, 16)
+    assert torch.allclose(out.rgb, ref[..., :3], atol=1e-10)
+    assert torch.allclose(out.alpha, ref_alpha, atol=1e-10)
+    g = torch.Generator().manual_seed(3)
+    w_rgb = torch.randn(2, 16, 16, 3, generator=g, dtype=torch.float64)
+    mine = torch.autograd.grad((out.rgb * w_rgb).sum() + out.alpha.sum(), params, retain_graph=True)
+    theirs = torch.autograd.grad((ref[..., :3] * w_rgb).sum() + ref_alpha.sum(), params)
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors"), mine, theirs):
+        assert torch.allclose(a, b, rtol=1e-7, atol=1e-9 * float(b.abs().max())), name
+    out2 = rasterize(*params, viewmats, ks, W, H, window, backend="torch")
+    out2.means2d.retain_grad()
+    (out2.rgb * w_rgb).sum().backward()
+    assert out2.means2d.grad.shape == (2, 400, 2)
+    culled = (out2.radii == 0).all(-1)
+    assert culled.any() and (out2.means2d.grad[culled] == 0).all()
+    assert out2.means2d.grad[~culled].abs().sum() > 0
+
+
+def test_sh_coefficients_equal_precomputed_colours():
+    params, viewmats, ks = random_scene(200, seed=11)
+    means, quats, scales, opacities, _ = params
+    coeffs = torch.randn(200, 9, 3, generator=torch.Generator().manual_seed(1)) * 0.3
+    centres = torch.linalg.inv(viewmats)[:, :3, 3]
+    dirs = torch.nn.functional.normalize(means[None] - centres[:, None], dim=-1)
+    colors = sh_to_rgb(coeffs, dirs, 2)  # (C, N, 3): differs per camera
+    a = rasterize(means, quats, scales, opacities, coeffs, viewmats, ks, W, H, sh_degree=2)
+    b = rasterize(means, quats, scales, opacities, colors, viewmats, ks, W, H)
+    assert torch.allclose(a.rgb, b.rgb, atol=1e-6)
 
 
 def test_background_empty_and_culled_scenes():

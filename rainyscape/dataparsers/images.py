@@ -40,6 +40,34 @@ def clean_sibling(image_dir: Path) -> Path | None:
     return candidate if candidate.is_dir() else None
 
 
+def clean_image_paths(option: str, root: Path, image_dir: Path, files: list[Path]) -> list[Path] | None:
+    """The clean image for each rainy image in ``files``, or None where there are none.
+
+    ``option`` is a parser's ``clean`` setting: "" (none), "auto" (the ``_wo_rain`` sibling of
+    ``image_dir`` when it exists) or a folder relative to ``root`` that must hold them all.
+    A clean image has the rainy one's name, or its stem with another suffix."""
+    if not option:
+        return None
+    if option == "auto":
+        folder = clean_sibling(image_dir)
+        if folder is None:
+            return None
+    else:
+        folder = root / option
+        if not folder.is_dir():
+            raise DataError(f"{folder}: clean image folder not found (clean=)")
+    paths = []
+    for f in files:
+        p = folder / f.name
+        if not p.is_file():
+            matches = sorted(q for q in folder.glob(f"{f.stem}.*") if q.is_file())
+            if not matches:
+                raise DataError(f"{folder}: no clean image named like {f.name}")
+            p = matches[0]
+        paths.append(p)
+    return paths
+
+
 def read_rgb(path: Path) -> np.ndarray:
     """(H, W, 3) uint8 RGB; grey, alpha and 16-bit images are converted."""
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)

@@ -26,7 +26,7 @@ import torch
 from rainyscape.cameras import Cameras
 from rainyscape.components import DataParser
 from rainyscape.dataparsers.base import CommonParserConfig, assemble_scene
-from rainyscape.dataparsers.images import clean_sibling, list_images, read_stack
+from rainyscape.dataparsers.images import clean_image_paths, list_images, read_stack
 from rainyscape.errors import DataError
 from rainyscape.scene import SceneData
 
@@ -166,21 +166,5 @@ class LLFFParser(DataParser):
             metadata={"format": "llff", "pose_convention": convention, "images": str(image_dir)})
 
     def _clean(self, root: Path, image_dir: Path, files: list[Path], size: tuple[int, int]):
-        cfg: LLFFConfig = self.config
-        if not cfg.clean:
-            return None
-        if cfg.clean == "auto":
-            folder = clean_sibling(image_dir)
-            if folder is None:
-                return None
-        else:
-            folder = root / cfg.clean
-            if not folder.is_dir():
-                raise DataError(f"{folder}: clean image folder not found (clean=)")
-        paths = []
-        for f in files:
-            p = folder / f.name
-            if not p.is_file():
-                raise DataError(f"{folder}: no clean image named {f.name}")
-            paths.append(p)
-        return read_stack(paths, size, what="clean image")
+        paths = clean_image_paths(self.config.clean, root, image_dir, files)
+        return None if paths is None else read_stack(paths, size, what="clean image")

@@ -22,7 +22,7 @@ import torch
 from rainyscape.components import DataParser
 from rainyscape.dataparsers.base import CommonParserConfig, assemble_scene
 from rainyscape.dataparsers.depth import depth_bounds, points_from_depth, read_depth_mat
-from rainyscape.dataparsers.images import clean_sibling, list_images, read_rgba, read_stack
+from rainyscape.dataparsers.images import clean_image_paths, list_images, read_rgba, read_stack
 from rainyscape.dataparsers.maya_math import MAYA_CSV_COLUMNS, maya_cameras
 from rainyscape.errors import DataError
 from rainyscape.scene import SceneData
@@ -201,18 +201,8 @@ class MayaCsvParser(DataParser):
         return root
 
     def _clean(self, root: Path, image_dir: Path, files: list[Path], size: tuple[int, int]):
-        if not self.config.clean:
-            return None
-        if self.config.clean == "auto":
-            folder = clean_sibling(image_dir)
-            if folder is None:
-                return None
-        else:
-            folder = root / self.config.clean
-            if not folder.is_dir():
-                raise DataError(f"{folder}: clean image folder not found (clean=)")
-        paths = [self._same_name(folder, f, "clean image") for f in files]
-        return read_stack(paths, size, what="clean image")
+        paths = clean_image_paths(self.config.clean, root, image_dir, files)
+        return None if paths is None else read_stack(paths, size, what="clean image")
 
     def _depths(self, root: Path, files: list[Path], size: tuple[int, int]):
         folder = _sibling(root, self.config.depth)
@@ -244,13 +234,3 @@ class MayaCsvParser(DataParser):
             b = clean[i].numpy().astype(np.float32) / 255.0
             layers.append(a * (c - b))  # I - B for I = B (1 - A) + C A
         return torch.from_numpy(np.stack(layers))
-
-    @staticmethod
-    def _same_name(folder: Path, like: Path, what: str) -> Path:
-        p = folder / like.name
-        if p.is_file():
-            return p
-        matches = [q for q in folder.glob(f"{like.stem}.*") if q.is_file()]
-        if not matches:
-            raise DataError(f"{folder}: no {what} named like {like.name}")
-        return matches[0]

@@ -22,7 +22,7 @@ import torch
 from rainyscape.cameras import Cameras, opengl_to_opencv
 from rainyscape.components import DataParser
 from rainyscape.dataparsers.base import CommonParserConfig, assemble_scene
-from rainyscape.dataparsers.images import IMAGE_SUFFIXES, clean_sibling, read_rgb
+from rainyscape.dataparsers.images import IMAGE_SUFFIXES, clean_image_paths, read_rgb
 from rainyscape.errors import DataError
 from rainyscape.scene import SceneData
 
@@ -176,22 +176,12 @@ class TransformsJsonParser(DataParser):
             metadata={"format": "transforms-json", "transforms": str(json_path)})
 
     def _clean(self, root: Path, files: list[Path], cams: list[FrameCamera]):
-        cfg: TransformsJsonConfig = self.config
-        if not cfg.clean:
+        # Frames may sit in different folders: each looks for its own clean sibling.
+        paths = [clean_image_paths(self.config.clean, root, f.parent, [f]) for f in files]
+        if any(p is None for p in paths):
             return None
         out = []
-        for f, cam in zip(files, cams):
-            if cfg.clean == "auto":
-                folder = clean_sibling(f.parent)
-                if folder is None:
-                    return None
-            else:
-                folder = root / cfg.clean
-                if not folder.is_dir():
-                    raise DataError(f"{folder}: clean image folder not found (clean=)")
-            p = folder / f.name
-            if not p.is_file():
-                raise DataError(f"{folder}: no clean image named {f.name}")
+        for [p], cam in zip(paths, cams):
             img = read_rgb(p)
             if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
                 raise DataError(f"{p}: clean image is {img.shape[1]}x{img.shape[0]}, the rainy one "

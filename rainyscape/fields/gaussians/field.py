@@ -23,7 +23,7 @@ from rainyscape.errors import ConfigError
 from rainyscape.fields.gaussians.densify import Densifier, DensifySchedule
 from rainyscape.fields.gaussians.ply import write_ply
 from rainyscape.fields.gaussians.rasterize import BACKENDS, rasterize
-from rainyscape.fields.gaussians.sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh0, sh_to_rgb
+from rainyscape.fields.gaussians.sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh0
 from rainyscape.scene import SceneData
 
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
@@ -164,14 +164,14 @@ class GaussianField(Field):
 
     def render(self, cameras: Cameras, window: Window) -> RenderOutput:
         p = self.params
-        means = p["means"]
-        dirs = torch.nn.functional.normalize(means[None] - cameras.centers[:, None], dim=-1)
-        coeffs = torch.cat([p["sh0"], p["shN"]], 1)
-        colors = sh_to_rgb(coeffs, dirs, min(int(self.active_sh_degree), self.config.sh_degree))
-        out = rasterize(means, p["quats"], p["scales"].exp(), torch.sigmoid(p["opacities"]), colors,
-                        cameras.w2c(), cameras.K(), self.width, self.height, window,
-                        backgrounds=self.background, near_plane=self.config.near_plane,
-                        eps2d=self.config.eps2d, backend=self.config.backend)
+        degree = min(int(self.active_sh_degree), self.config.sh_degree)
+        # Only the active degree's coefficients; the rasteriser evaluates them in view only.
+        coeffs = torch.cat([p["sh0"], p["shN"][:, :num_sh_bases(degree) - 1]], 1)
+        out = rasterize(p["means"], p["quats"], p["scales"].exp(), torch.sigmoid(p["opacities"]),
+                        coeffs, cameras.w2c(), cameras.K(), self.width, self.height, window,
+                        sh_degree=degree, backgrounds=self.background,
+                        near_plane=self.config.near_plane, eps2d=self.config.eps2d,
+                        backend=self.config.backend)
         if self.training and out.means2d.requires_grad:
             out.means2d.retain_grad()  # densification reads its gradient
         return RenderOutput(

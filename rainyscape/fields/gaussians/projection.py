@@ -49,6 +49,46 @@ def covariance_factor(quats: Tensor, scales: Tensor) -> Tensor:
     return quat_to_rotmat(quats) * scales[..., None, :]
 
 
+@torch.no_grad()
+def candidate_gaussians(means: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor,
+                        Ks: Tensor, width: int, height: int, window_x0: Tensor,
+                        window_y0: Tensor, window_width: int, window_height: int,
+                        near_plane: float = 0.01, far_plane: float = 1e10,
+                        eps2d: float = 0.3) -> Tensor:
+    """Indices of the Gaussians that may be visible in some camera's window: a cheap
+    superset of :func:`project_gaussians`'s visible set, so that the costly differentiable
+    projection, colour and compositing run on these only (a patch sees a few percent of a
+    scene's Gaussians).
+
+    The bound: a screen-space standard deviation is at most max(scale) times the norm of
+    the Jacobian row, f / z sqrt(1 + t^2) at the clamped mean t (W is a rotation), and the
+    box reaches ``MAX_EXTENT_SIGMA`` of them (plus the dilation); one pixel of slack.
+    """
+    dev, dt = means.device, means.dtype
+    rot, trans = viewmats[:, :3, :3].to(dt), viewmats[:, :3, 3].to(dt)
+    p = means @ rot.transpose(1, 2) + trans[:, None]  # (C, N, 3)
+    x, y, z = p.unbind(-1)
+    in_depth = (z > near_plane) & (z < far_plane)
+    z_safe = torch.where(in_depth, z, torch.ones_like(z))
+    fx, fy = Ks[:, 0, 0, None].to(dt), Ks[:, 1, 1, None].to(dt)
+    cx, cy = Ks[:, 0, 2, None].to(dt), Ks[:, 1, 2, None].to(dt)
+    xz, yz = x / z_safe, y / z_safe
+    lim_x, lim_y = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy
+    tx = torch.clamp(xz, min=-(cx / fx + lim_x), max=(width - cx) / fx + lim_x)
+    ty = torch.clamp(yz, min=-(cy / fy + lim_y), max=(height - cy) / fy + lim_y)
+    s_max = scales.amax(-1)[None]
+    sx = s_max * fx / z_safe * torch.sqrt(1 + tx * tx)
+    sy = s_max * fy / z_safe * torch.sqrt(1 + ty * ty)
+    rx = MAX_EXTENT_SIGMA * torch.sqrt(sx * sx + eps2d) + 1.0
+    ry = MAX_EXTENT_SIGMA * torch.sqrt(sy * sy + eps2d) + 1.0
+    mx = fx * xz + cx - window_x0.to(dev, dt)[:, None]
+    my = fy * yz + cy - window_y0.to(dev, dt)[:, None]
+    on_screen = ((mx + rx > 0) & (mx - rx < window_width)
+                 & (my + ry > 0) & (my - ry < window_height))
+    ok = in_depth & on_screen & (opacities >= ALPHA_THRESHOLD)
+    return ok.any(0).nonzero().squeeze(1)
+
+
 def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
                       viewmats: Tensor, Ks: Tensor, width: int, height: int,
                       window_x0: Tensor | None = None, window_y0: Tensor | None = None,

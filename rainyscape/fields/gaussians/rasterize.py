@@ -2,6 +2,8 @@
 
 ``backend="auto"`` uses gsplat (CUDA) when the tensors are on a CUDA device and gsplat
 is installed, and the tiled torch rasteriser otherwise (CPU, or CUDA without gsplat).
+The torch path first culls, cheaply and without gradients, the Gaussians that cannot be
+in view, and projects, colours and composites the rest only.
 """
 
 from __future__ import annotations
@@ -13,9 +15,10 @@ from torch import Tensor
 
 from rainyscape.cameras import Window
 from rainyscape.errors import ConfigError
-from rainyscape.fields.gaussians.projection import project_gaussians
+from rainyscape.fields.gaussians.projection import candidate_gaussians, project_gaussians
 from rainyscape.fields.gaussians.rasterize_gsplat import gsplat_installed, rasterize_gsplat
 from rainyscape.fields.gaussians.rasterize_torch import composite
+from rainyscape.fields.gaussians.sh import sh_to_rgb
 
 BACKENDS = ("auto", "torch", "gsplat")
 
@@ -40,37 +43,74 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     return backend
 
 
+def camera_centres(viewmats: Tensor) -> Tensor:
+    """World positions (C, 3) of the cameras of world-to-camera matrices (C, 4, 4)."""
+    rot = viewmats[:, :3, :3]
+    return -(rot.transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]
+
+
+def colors_from_sh(coeffs: Tensor, means: Tensor, viewmats: Tensor, sh_degree: int) -> Tensor:
+    """Per-camera colours (C, N, 3) of SH coefficients (N, K, 3) seen from each camera."""
+    dirs = torch.nn.functional.normalize(means[None] - camera_centres(viewmats)[:, None], dim=-1)
+    return sh_to_rgb(coeffs, dirs, sh_degree)
+
+
 def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
               viewmats: Tensor, Ks: Tensor, width: int, height: int,
-              window: Window | None = None, *, backgrounds: Tensor | None = None,
-              near_plane: float = 0.01, far_plane: float = 1e10, eps2d: float = 0.3,
-              backend: str = "auto") -> Rasterized:
+              window: Window | None = None, *, sh_degree: int | None = None,
+              backgrounds: Tensor | None = None, near_plane: float = 0.01,
+              far_plane: float = 1e10, eps2d: float = 0.3, backend: str = "auto") -> Rasterized:
     """Render C cameras (or a window of each) of N Gaussians.
 
     means (N, 3), quats (N, 4) w x y z, scales (N, 3) linear, opacities (N,) in [0, 1],
-    colors (N, 3) or (C, N, 3) post-activation, viewmats (C, 4, 4) world-to-camera
-    (OpenCV), Ks (C, 3, 3); width / height: the full image. ``window``: per-camera offsets
-    and one size (default: the whole image); only its pixels are computed.
+    colors (N, 3) or (C, N, 3) post-activation, or with ``sh_degree`` SH coefficients
+    (N, K, 3) evaluated along camera centre -> mean (as gsplat), viewmats (C, 4, 4)
+    world-to-camera (OpenCV), Ks (C, 3, 3); width / height: the full image. ``window``:
+    per-camera offsets and one size (default: the whole image); only its pixels are
+    computed.
     """
-    c = viewmats.shape[0]
+    c, n = viewmats.shape[0], means.shape[0]
     if window is None:
         zeros = torch.zeros(c, dtype=torch.long)
         window = Window(zeros, zeros.clone(), width, height)
     x0, y0 = window.x0.to(means.device), window.y0.to(means.device)
     if resolve_backend(backend, means.device) == "gsplat":
+        if sh_degree is not None:
+            colors = colors_from_sh(colors, means, viewmats, sh_degree)
         rgb, alpha, depth, means2d, radii = rasterize_gsplat(
             means, quats, scales, opacities, colors, viewmats, Ks, x0, y0, window.width,
             window.height, near_plane, far_plane, eps2d)
     else:
-        proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height,
-                                 x0, y0, window.width, window.height, near_plane, far_plane, eps2d)
+        # Everything differentiable runs on the Gaussians that may be in view only.
+        ids = candidate_gaussians(means.detach(), scales.detach(), opacities.detach(), viewmats,
+                                  Ks, width, height, x0, y0, window.width, window.height,
+                                  near_plane, far_plane, eps2d)
+        culled = len(ids) < n
+
+        def take(t: Tensor, dim: int = 0) -> Tensor:
+            return t.index_select(dim, ids) if culled else t
+
+        sub_means = take(means)
+        proj = project_gaussians(sub_means, take(quats), take(scales), take(opacities),
+                                 viewmats, Ks, width, height, x0, y0, window.width,
+                                 window.height, near_plane, far_plane, eps2d)
+        if sh_degree is not None:
+            colors = colors_from_sh(take(colors), sub_means, viewmats, sh_degree)
+        else:
+            colors = take(colors, colors.ndim - 2)
         if colors.ndim == 2:
             colors = colors[None].expand(c, -1, -1)
+        means2d, radii = proj.means2d, proj.radii
+        if culled:
+            # Densification reads the 2D means' gradient for all N Gaussians: route the
+            # subset's means through a full-size tensor (zeros where culled).
+            means2d = means2d.new_zeros(c, n, 2).index_copy(1, ids, means2d)
+            proj.means2d = means2d.index_select(1, ids)
+            radii = radii.new_zeros(c, n, 2).index_copy_(1, ids, radii)
         features = torch.cat([colors, proj.depths[..., None]], -1)
         out, alpha = composite(proj, features, window.width, window.height)
         rgb = out[..., :3]
         depth = out[..., 3:] / alpha.clamp_min(1e-10)
-        means2d, radii = proj.means2d, proj.radii
     if backgrounds is not None:
         rgb = rgb + (1.0 - alpha) * backgrounds.to(rgb).reshape(-1, 1, 1, 3)
     return Rasterized(rgb, alpha, depth, means2d, radii)

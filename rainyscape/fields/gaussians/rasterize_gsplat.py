@@ -1,8 +1,8 @@
 """The CUDA path: gsplat's ``rasterization()`` (optional extra ``rainyscape[cuda]``).
 
 Windows are rendered by shifting the principal point and rasterising a window-sized
-image, so a patch costs a patch. Colours are passed post-activation (SH are evaluated
-by the field, identically for both paths). Difference to the torch path: gsplat bounds
+image, so a patch costs a patch. Colours are passed post-activation (``rasterize()``
+evaluates spherical harmonics in torch first, identically for both paths). Difference to the torch path: gsplat bounds
 its Jacobian clamp by the rendered window rather than the full image, which changes
 the footprint of large Gaussians centred more than ~15% of the window outside it.
 """
@@ -35,6 +35,7 @@ def rasterize_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Te
     ks[:, 1, 2] -= y0.to(ks)
     if colors.ndim == 2:
         colors = colors[None].expand(c, -1, -1)
+    colors = colors.contiguous()
     render, alpha, meta = rasterization(
         means, quats, scales, opacities, colors, viewmats, ks, win_w, win_h,
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, packed=False,

@@ -2,8 +2,9 @@
 
 Binning as gsplat: every visible Gaussian is listed in each 16 x 16 tile its bounding
 box touches and the lists are sorted by depth. For compositing, each tile's list is then
-culled per 8 x 8 quarter (most Gaussians of a trained scene are a few pixels wide, so
-this halves the pixel work on a CPU). All tiles are composited together, ``SLOTS``
+culled per 8 x 8 quarter, keeping a Gaussian only where its alpha >= 1/255 ellipse meets
+the quarter (most Gaussians of a trained scene are a few pixels wide, so this halves the
+pixel work on a CPU). All tiles are composited together, ``SLOTS``
 Gaussians of every list at a time: one step works on a (tiles, pixels, slots) block, so
 there is no Python loop over Gaussians or pixels. A tile leaves the sweep when its list
 ends or all its pixels are opaque.
@@ -84,11 +85,38 @@ def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int = TI
     return Binning(ids, tile_start, tile_count, tiles_x, tiles_y, tile_size)
 
 
+def min_sigma_in_boxes(offset_lo: Tensor, offset_hi: Tensor, conics: Tensor) -> Tensor:
+    """Minimum of sigma(d) = (a dx^2 + 2 b dx dy + c dy^2) / 2 over boxes of offsets d
+    (mean minus point) in [offset_lo, offset_hi] (M, 2); conics (M, 3) = (a, b, c).
+
+    A convex quadratic: 0 where the box holds d = 0, else the least of its four edges'
+    minima, each a clamped 1D minimum in closed form."""
+    a, b, c = conics.unbind(-1)
+    (x0, y0), (x1, y1) = offset_lo.unbind(-1), offset_hi.unbind(-1)
+
+    def sigma(dx: Tensor, dy: Tensor) -> Tensor:
+        return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+
+    def best_y(dx: Tensor) -> Tensor:  # argmin over dy on the edge at dx
+        return torch.minimum(torch.maximum(-b * dx / c, y0), y1)
+
+    def best_x(dy: Tensor) -> Tensor:
+        return torch.minimum(torch.maximum(-b * dy / a, x0), x1)
+
+    edges = torch.stack([sigma(x0, best_y(x0)), sigma(x1, best_y(x1)),
+                         sigma(best_x(y0), y0), sigma(best_x(y1), y1)]).amin(0)
+    inside = (x0 <= 0) & (x1 >= 0) & (y0 <= 0) & (y1 >= 0)
+    return torch.where(inside, torch.zeros_like(edges), edges)
+
+
 @torch.no_grad()
 def split_tiles(binning: Binning, proj: Projection, sub: int = SUBTILE_SIZE) -> Binning:
     """The same intersections on a grid of ``sub``-pixel tiles (a divisor of the binning
-    tile): each tile's depth-sorted list is split among the sub-tiles its Gaussians'
-    bounding boxes touch, keeping the depth order."""
+    tile): each tile's depth-sorted list is split among the sub-tiles its Gaussians can
+    reach, keeping the depth order. A Gaussian reaches a sub-tile when its bounding box
+    overlaps it and, exactly, when its ellipse alpha >= 1/255 meets the sub-tile's pixel
+    centres: the box test alone keeps about a third of empty pairs (the box corners of
+    round Gaussians, most of the box of slanted elongated ones)."""
     s = binning.tile_size
     if sub >= s or s % sub:
         return binning
@@ -100,8 +128,8 @@ def split_tiles(binning: Binning, proj: Projection, sub: int = SUBTILE_SIZE) -> 
     ids = binning.gaussian_ids
     cam, t = tile // per_cam, tile % per_cam
     tx, ty = t % binning.tiles_x, t // binning.tiles_x
-    mean = proj.means2d.detach().reshape(-1, 2)[ids]
-    rad = proj.radii.reshape(-1, 2)[ids].to(mean.dtype)
+    mean = proj.means2d.detach().reshape(-1, 2).index_select(0, ids)
+    rad = proj.radii.reshape(-1, 2).index_select(0, ids).to(mean.dtype)
     lo = torch.floor((mean - rad) / sub).long()  # the Gaussian's sub-tile range
     hi = torch.ceil((mean + rad) / sub).long()
     q = torch.arange(f, device=dev)
@@ -111,11 +139,22 @@ def split_tiles(binning: Binning, proj: Projection, sub: int = SUBTILE_SIZE) -> 
     in_y = (rows >= lo[:, 1:]) & (rows < hi[:, 1:])
     hit = in_y[:, :, None] & in_x[:, None, :]  # (M, f rows, f cols)
     entry, qy, qx = hit.nonzero(as_tuple=True)
+    col, row = cols[entry, qx], rows[entry, qy]
+    # Pixel centres of the sub-tile: sub * index + 0.5 ... sub * index + sub - 0.5.
+    first = torch.stack([col, row], -1).to(mean.dtype) * sub + 0.5
+    m = mean.index_select(0, entry)
+    gid = ids.index_select(0, entry)
+    reach = min_sigma_in_boxes(m - first - (sub - 1), m - first,
+                               proj.conics.detach().reshape(-1, 3).index_select(0, gid))
+    opac = proj.opacities.detach().reshape(-1).index_select(0, gid)
+    # alpha > 1/255 somewhere needs sigma < log(o * 255); a small margin for rounding.
+    ok = reach < torch.log(opac / ALPHA_THRESHOLD) + 1e-3
+    entry, col, row = entry[ok], col[ok], row[ok]
     sub_x, sub_y = binning.tiles_x * f, binning.tiles_y * f
-    sub_tile = cam[entry] * (sub_x * sub_y) + rows[entry, qy] * sub_x + cols[entry, qx]
+    sub_tile = cam[entry] * (sub_x * sub_y) + row * sub_x + col
     order = torch.argsort(sub_tile, stable=True)  # entries were in (tile, depth) order
     count = torch.bincount(sub_tile, minlength=len(binning.tile_count) * f * f)
-    return Binning(ids[entry[order]], torch.cumsum(count, 0) - count, count, sub_x, sub_y, sub)
+    return Binning(gid[ok][order], torch.cumsum(count, 0) - count, count, sub_x, sub_y, sub)
 
 
 def _tile_geometry(binning: Binning, width: int, height: int, dtype, device):
@@ -159,13 +198,14 @@ def _step_alpha(means2d, conics, opacities, gid, slot_ok, origin, centres):
     op = opacities.index_select(0, flat).view(a, k) * slot_ok  # empty slots: opacity 0
     dx = mean[:, 0, None] - centres[:, None]  # (A, s, K): to each pixel column
     dy = mean[:, 1, None] - centres[:, None]  # (A, s, K): to each pixel row
-    # -sigma = -(a dx^2 / 2 + c dy^2 / 2 + b dx dy): two separable terms and an outer product
-    col = (-0.5 * con[:, 0, None] * dx * dx)[:, None]  # (A, 1, s, K)
+    # log(o) - sigma = log(o) - (a dx^2 / 2 + c dy^2 / 2 + b dx dy): two separable terms
+    # (the opacity folded into the small one; -inf in empty slots) and an outer product
+    col = (torch.log(op)[:, None] - 0.5 * con[:, 0, None] * dx * dx)[:, None]  # (A, 1, s, K)
     row = (-0.5 * con[:, 2, None] * dy * dy)[:, :, None]  # (A, s, 1, K)
-    neg_sigma = torch.addcmul(col + row, (-con[:, 1, None] * dx)[:, None], dy[:, :, None])
+    log_raw = torch.addcmul(col + row, (-con[:, 1, None] * dx)[:, None], dy[:, :, None])
     # Floor the exponent: far pixels would give float32 denormals, which are very slow to
     # compute; exp(-20) is far below the 1/255 threshold, so no kept alpha changes.
-    raw = neg_sigma.clamp_(min=-20.0).exp_().mul_(op[:, None, None]).reshape(a, s * s, k)
+    raw = log_raw.clamp_(min=-20.0).exp_().reshape(a, s * s, k)
     alpha = F.threshold(raw, ALPHA_THRESHOLD, 0.0).clamp_(max=MAX_ALPHA)
     return alpha, op, con, dx, dy
 
@@ -271,7 +311,7 @@ def _backward(means2d, conics, opacities, features, binning, width, height, g_ou
         if st.keep is not None:
             g_alpha.mul_(st.keep)
         # alpha = o exp(-sigma) where neither the 1/255 threshold nor the clamp is active
-        live = st.alpha.masked_fill(st.alpha >= MAX_ALPHA, 0.0)
+        live = st.alpha * (st.alpha < MAX_ALPHA)
         g_neg_sigma = g_alpha.mul_(live)  # dL/d(-sigma) = dL/dalpha * alpha
         grad_o = g_neg_sigma.sum(1) / st.op.clamp_min(1e-30)  # (A, K)
         gs = g_neg_sigma.reshape(a, s, s, SLOTS)  # rows, columns, slots

@@ -15,7 +15,7 @@ from rainyscape.fields.gaussians.projection import ALPHA_THRESHOLD, Projection
 from rainyscape.fields.gaussians.rasterize_torch import MAX_ALPHA, T_MIN
 
 
-def _composite_pixels(mean: Tensor, conic: Tensor, opac: Tensor, feat: Tensor,
+def composite_pixels(mean: Tensor, conic: Tensor, opac: Tensor, feat: Tensor,
                       px: Tensor, py: Tensor) -> tuple[Tensor, Tensor]:
     """Depth-sorted Gaussians (V, ...) at pixel centres (P,): features (P, D), alpha (P,)."""
     dx = mean[:, 0, None] - px[None]
@@ -43,7 +43,7 @@ def composite_dense(proj: Projection, features: Tensor, width: int, height: int,
         z = proj.depths[c]
         idx = ((z > near_plane) & (z < far_plane)).nonzero().squeeze(1)
         idx = idx[torch.argsort(z.detach()[idx], stable=True)]
-        parts = [_composite_pixels(proj.means2d[c, idx], proj.conics[c, idx],
+        parts = [composite_pixels(proj.means2d[c, idx], proj.conics[c, idx],
                                    proj.opacities[c, idx], features[c, idx], x, y)
                  for x, y in zip(px.split(pixel_chunk), py.split(pixel_chunk))]
         feats.append(torch.cat([p[0] for p in parts]).reshape(height, width, -1))
