@@ -10,7 +10,9 @@ import pytest
 import torch
 import trimesh
 
-from rainyscape.eval.export import GL_FLIP, export_mesh, grid_points, original_c2w, transforms_json
+from rainyscape.cameras import opengl_to_opencv
+from rainyscape.dataparsers.writers import original_c2w, transforms_meta
+from rainyscape.eval.export import export_mesh, grid_points
 from rainyscape.scene import apply_normalization
 from test_eval_fakes import make_pipeline
 
@@ -65,10 +67,11 @@ def test_grid_points_cover_the_box_with_equal_spacing():
 def test_transforms_json_puts_cameras_back_in_the_input_frame(tiny_scene, tiny_scene_dir):
     scene = tiny_scene
     names = [f"images/{n}" for n in scene.image_names]
-    content = json.loads(json.dumps(transforms_json(scene, names)))
-    assert content["w"] == scene.width and content["fl_x"] == pytest.approx(float(scene.cameras.fx[0]))
+    content = json.loads(json.dumps(transforms_meta(scene, names)))
+    assert content["w"] == scene.width
+    assert content["frames"][0]["fl_x"] == pytest.approx(float(scene.cameras.fx[0]))
     gl = torch.tensor([f["transform_matrix"] for f in content["frames"]], dtype=torch.float64)
-    cv = gl @ torch.from_numpy(GL_FLIP)
+    cv = opengl_to_opencv(gl)
     # re-normalising the exported cameras gives the scene's cameras back
     again = apply_normalization(cv.float(), scene.transform, scene.scale)
     assert torch.allclose(again, scene.cameras.c2w, atol=1e-4)

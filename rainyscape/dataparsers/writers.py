@@ -77,20 +77,22 @@ def _bounds(scene: SceneData) -> np.ndarray:
     return np.tile([scene.near / scene.scale, scene.far / scene.scale], (n, 1))
 
 
-def write_transforms_json(scene: SceneData, out: str | Path) -> Path:
-    """nerfstudio-style ``transforms.json`` (OpenGL camera-to-world, per-frame intrinsics)."""
-    out = Path(out)
+def transforms_meta(scene: SceneData, file_paths: list[str]) -> dict:
+    """nerfstudio ``transforms.json`` content: OpenGL camera-to-world in the input's world
+    frame and per-frame pinhole intrinsics, one frame per view with ``file_paths``."""
     c2w_gl = opengl_to_opencv(torch.from_numpy(original_c2w(scene))).numpy()
     cams = scene.cameras
-    frames = []
-    for i, name in enumerate(scene.image_names):
-        frames.append({
-            "file_path": f"{RAINY}/{Path(name).stem}.png",
-            "transform_matrix": c2w_gl[i].tolist(),
-            "fl_x": float(cams.fx[i]), "fl_y": float(cams.fy[i]),
-            "cx": float(cams.cx[i]), "cy": float(cams.cy[i]),
-        })
-    meta = {"camera_model": "PINHOLE", "w": cams.width, "h": cams.height, "frames": frames}
+    frames = [{"file_path": fp, "transform_matrix": c2w_gl[i].tolist(),
+               "fl_x": float(cams.fx[i]), "fl_y": float(cams.fy[i]),
+               "cx": float(cams.cx[i]), "cy": float(cams.cy[i])}
+              for i, fp in enumerate(file_paths)]
+    return {"camera_model": "PINHOLE", "w": cams.width, "h": cams.height, "frames": frames}
+
+
+def write_transforms_json(scene: SceneData, out: str | Path) -> Path:
+    """A transforms.json scene: the images plus ``transforms.json`` (see :func:`transforms_meta`)."""
+    out = Path(out)
+    meta = transforms_meta(scene, [f"{RAINY}/{Path(n).stem}.png" for n in scene.image_names])
     _write_images(scene, out)
     (out / "transforms.json").write_text(json.dumps(meta, indent=2) + "\n")
     return out

@@ -19,9 +19,7 @@ from torch import Tensor
 
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.errors import ConfigError
-from rainyscape.scene import SceneData
 
-GL_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera axes <-> OpenGL (an involution)
 
 
 # ------------------------------------------------------------------------------ mesh
@@ -110,41 +108,19 @@ def export_gaussians(pipeline: Pipeline, path: Path) -> dict:
 # ----------------------------------------------------------------------------- cameras
 
 
-def original_c2w(scene: SceneData) -> np.ndarray:
-    """Camera-to-world (N, 4, 4), OpenCV axes, in the input's world frame (undoes the
-    dataparser's normalised = scale * (transform @ x))."""
-    c2w = scene.cameras.c2w.double().cpu().clone()
-    c2w[:, :3, 3] /= scale if (scale := float(scene.scale)) else 1.0
-    inv = torch.linalg.inv(scene.transform.double().cpu())
-    return (inv[None] @ c2w).numpy()
-
-
-def transforms_json(scene: SceneData, file_paths: list[str]) -> dict:
-    """nerfstudio ``transforms.json`` of every view (shared pinhole intrinsics)."""
-    cams = scene.cameras
-    c2w = original_c2w(scene) @ GL_FLIP
-    frames = [{"file_path": fp, "transform_matrix": m.tolist()} for fp, m in zip(file_paths, c2w)]
-    return {"camera_model": "OPENCV", "w": cams.width, "h": cams.height,
-            "fl_x": float(cams.fx[0]), "fl_y": float(cams.fy[0]),
-            "cx": float(cams.cx[0]), "cy": float(cams.cy[0]),
-            "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames}
-
-
 def export_cameras(pipeline: Pipeline, out_dir: Path, images: bool = True) -> dict:
     """``transforms.json`` and, with ``images``, the de-rained render of every view."""
     from rainyscape.eval.evaluate import render_image
     from rainyscape.eval.images import save_png, to_uint8
 
+    from rainyscape.dataparsers.writers import transforms_meta
+
     scene = pipeline.scene
-    cams = scene.cameras
-    if not (torch.allclose(cams.fx, cams.fx[0]) and torch.allclose(cams.cx, cams.cx[0])):
-        raise ConfigError(f"scene {scene.name}: views have different intrinsics; "
-                          "transforms.json export supports one shared camera")
     names = [f"images/{Path(n).stem}.png" for n in scene.image_names]
     if images:
         for i, name in enumerate(names):
             save_png(out_dir / name, to_uint8(render_image(pipeline, i)))
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "transforms.json"
-    path.write_text(json.dumps(transforms_json(scene, names), indent=2))
+    path.write_text(json.dumps(transforms_meta(scene, names), indent=2))
     return {"transforms": str(path), "images": len(names) if images else 0}
