@@ -188,9 +188,10 @@ def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_options: dict) -> dict
             for key, img in v.post.items():
                 row.update({f"{key}_{k}": x for k, x in image_metrics(img, v.clean, lpips).items()})
     if v.rain is not None:
-        row["rain_angle_deg"] = streak_angle_deg(v.rain, angle_options)
+        angles = streak_angles_deg(v.rain, angle_options)  # strongest first
+        row["rain_angle_deg"] = angles[0] if angles else None
         if angle_options.get("k", 1) > 1:  # multi-direction rain: every direction the AGR term uses
-            row["rain_angles_deg"] = streak_angles_deg(v.rain, angle_options)
+            row["rain_angles_deg"] = angles
         row["residual_angle_deg"] = streak_angle_deg(v.rainy - v.rendered, angle_options)
         if v.true_rain is not None:
             row["rain_correlation"] = correlation(v.rain, v.true_rain)
