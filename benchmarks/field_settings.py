@@ -11,11 +11,10 @@ and the rainy images. One process per setting; compare settings run under the sa
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-from fields import build  # noqa: E402
+from fields import build, timed_steps  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).parent / "results" / "scenes" / "demo-64x3x6-v3"
 
@@ -30,10 +29,7 @@ def main(argv: list[str]) -> int:
                                        "trainer.progress=false", "trainer.eval_every=0",
                                        "trainer.checkpoint_every=0", "trainer.eval_views=6", *overrides],
                        Path("outputs/benchmarks/field_settings") / tag)
-    t0 = time.perf_counter()
-    for _ in range(iters):
-        trainer.train_step()
-    seconds = time.perf_counter() - t0
+    seconds = sum(timed_steps(trainer, iters))
     scores = {k: round(v, 2) for k, v in trainer.quick_eval().items()}
     print(tag, " ".join(overrides), f"{seconds:.0f}s", scores, flush=True)
     return 0
