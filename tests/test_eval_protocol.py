@@ -11,7 +11,7 @@ import torch
 from rainyscape.eval.evaluate import (angle_difference_deg, correlation, evaluate_pipeline, mean_angle_deg,
                                       write_metrics)
 from rainyscape.eval.metrics import psnr, ssim
-from test_eval_fakes import OFFSET, make_pipeline
+from _eval_fixtures import OFFSET, make_pipeline
 
 
 def test_every_field_of_the_protocol(tmp_path):

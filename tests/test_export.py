@@ -14,7 +14,7 @@ from rainyscape.cameras import opengl_to_opencv
 from rainyscape.dataparsers.writers import original_c2w, transforms_meta
 from rainyscape.eval.export import export_mesh, grid_points
 from rainyscape.scene import apply_normalization
-from test_eval_fakes import make_pipeline
+from _eval_fixtures import make_pipeline
 
 HALF = torch.tensor([0.4, 0.2, 0.3])  # a box of 0.8 x 0.4 x 0.6 centred at the origin
 

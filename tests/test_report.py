@@ -13,7 +13,7 @@ import pytest
 
 from rainyscape.eval.evaluate import evaluate_pipeline, write_metrics
 from rainyscape.eval.report import build_report, read_log
-from test_eval_fakes import make_pipeline
+from _eval_fixtures import make_pipeline
 
 
 class _Refs(HTMLParser):
