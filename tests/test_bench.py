@@ -63,22 +63,23 @@ def test_fingerprint_changes_with_the_budget():
 
 
 @pytest.mark.slow
-def test_one_cell_runs_then_resumes_as_done(tmp_path, tiny_scene_dir):
+def test_cells_run_in_parallel_then_resume_as_done(tmp_path, tiny_scene_dir):
     out = tmp_path / "results"
-    args = ["rs-bench", "methods=nerf", f"scenes={tiny_scene_dir}", "iters=4", f"out={out}", "name=tiny",
-            "device=cpu", "trainer.eval_every=0"]
+    args = ["rs-bench", "methods=nerf,robust-nerf", f"scenes={tiny_scene_dir}", "iters=4", f"out={out}",
+            "name=tiny", "device=cpu", "jobs=2", "threads=1", "trainer.eval_every=0"]
     first = subprocess.run(args, capture_output=True, text=True)
     assert first.returncode == 0, first.stdout + first.stderr
     results = json.loads((out / "tiny.json").read_text())
-    (cell,) = results["cells"].values()
+    assert sorted(c["method"] for c in results["cells"].values()) == ["nerf", "robust-nerf"]
+    cell = next(c for c in results["cells"].values() if c["method"] == "nerf")
     assert cell["status"] == "finished" and cell["iters"] == 4 and cell["how"] == "trained"
     assert cell["summary"]["train_psnr"] > 5 and cell["peak_rss_mib"] > 50 and cell["train_s"] > 0
     assert cell["views"]["width"] == 48  # it trained on the scene it was given
     assert results["machine"]["cores"] >= 1 and results["command"].startswith("rs-bench methods=nerf")
     table = (out / "tiny.md").read_text()
-    assert "| rainy input |" in table and "| nerf |" in table
+    assert "| rainy input |" in table and "| nerf |" in table and "| robust-nerf |" in table
     second = subprocess.run(args, capture_output=True, text=True)
-    assert second.returncode == 0 and "done earlier, skipped" in second.stdout
+    assert second.returncode == 0 and second.stdout.count("done earlier, skipped") == 2
     assert json.loads((out / "tiny.json").read_text())["cells"] == results["cells"]
 
 

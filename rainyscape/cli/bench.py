@@ -3,13 +3,15 @@
 Usage:
   rs-bench [methods=M1,M2,...] [scenes=S1,S2,...] [iters=N] [out=benchmarks/results]
            [name=DATE] [device=auto] [ablation=SCENE] [ablation_method=rainyscape-nerf]
-           [scene_width=W] [scene_rows=R] [scene_cols=C] [KEY.PATH=value ...]
+           [scene_width=W] [scene_rows=R] [scene_cols=C] [jobs=1] [threads=0]
+           [KEY.PATH=value ...]
 
 Scenes are simulator presets (demo, yard, street, bridge, plaza; simulated once into
 OUT/scenes) or scene folders. iters sets trainer.max_iters of every cell (0: each method's
 own); dotted keys (trainer.eval_every=0, ...) are passed to every cell. Each cell trains in
 its own process; OUT/NAME.json is updated after every cell and rerunning the same command
-skips finished cells and resumes interrupted ones. OUT/NAME.md holds the Table-I-style
+skips finished cells and resumes interrupted ones. jobs=N trains N cells at once, each
+with threads= torch threads (default: cores / N). OUT/NAME.md holds the Table-I-style
 tables (per scene PSNR / SSIM / LPIPS, then the average; training time and peak memory)
 and, with ablation=SCENE, the loss ablation of ablation_method (the paper's Table II).
 """

@@ -18,6 +18,7 @@ import platform
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -179,8 +180,9 @@ def run_cell_here(spec: dict) -> dict:
             "views": metrics.get("views", {}), **peak_memory_mib()}
 
 
-def run_cell_subprocess(cell: Cell, output_dir: Path, device: str) -> dict:
-    """Run a cell in a fresh interpreter; its console output goes to ``bench.log``."""
+def run_cell_subprocess(cell: Cell, output_dir: Path, device: str, threads: int = 0) -> dict:
+    """Run a cell in a fresh interpreter (``threads`` > 0: that many torch / OpenMP
+    threads); its console output goes to ``bench.log``."""
     output_dir.mkdir(parents=True, exist_ok=True)
     spec = {"method": cell.method, "overrides": [f"data={cell.data}", *cell.overrides,
                                                  f"trainer.device={device}", "trainer.progress=false"],
@@ -188,9 +190,10 @@ def run_cell_subprocess(cell: Cell, output_dir: Path, device: str) -> dict:
     spec_path, result_path = output_dir / "cell.json", output_dir / "result.json"
     spec_path.write_text(json.dumps(spec, indent=2))
     result_path.unlink(missing_ok=True)
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads)) if threads > 0 else None
     with open(output_dir / "bench.log", "a") as log:
         done = subprocess.run([sys.executable, "-m", "rainyscape.eval.bench", str(spec_path), str(result_path)],
-                              stdout=log, stderr=subprocess.STDOUT)
+                              stdout=log, stderr=subprocess.STDOUT, env=env)
     if done.returncode == 0 and result_path.is_file():
         return json.loads(result_path.read_text())
     tail = (output_dir / "bench.log").read_text().strip().splitlines()[-5:]
@@ -343,6 +346,8 @@ class BenchOptions:
     scene_width: int = 0  # simulated scenes: image width (0: the preset's)
     scene_rows: int = 0  # simulated scenes: camera rows x cols (0: the preset's)
     scene_cols: int = 0
+    jobs: int = 1  # cells trained at the same time
+    threads: int = 0  # torch threads per cell (0: torch's default, or cores / jobs when jobs > 1)
 
 
 def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[Path, Path, int]:
@@ -354,6 +359,9 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
         raise ConfigError("rs-bench: methods= lists no method")
     if opts.iters < 0:
         raise ConfigError(f"rs-bench: iters must be >= 0, got {opts.iters}")
+    if opts.jobs < 1 or opts.threads < 0:
+        raise ConfigError(f"rs-bench: jobs must be >= 1 and threads >= 0, got {opts.jobs} and {opts.threads}")
+    threads = opts.threads or (max(1, (os.cpu_count() or 1) // opts.jobs) if opts.jobs > 1 else 0)
     budget = [f"trainer.max_iters={opts.iters}"] if opts.iters else []
     # Every method and override must be valid before any scene is simulated or cell trained.
     validate_cells(build_cells(methods, [("", "")], budget + overrides,
@@ -367,28 +375,41 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
     json_path, md_path = out / f"{name}.json", out / f"{name}.md"
     results = load_results(json_path)
     results.update({"name": name, "command": command, "machine": machine_description()})
-    failed = 0
+    todo = []
     for n, cell in enumerate(cells, 1):
         prev = results["cells"].get(cell.key, {})
         if prev.get("status") == "finished" and prev.get("fingerprint") == cell.fingerprint():
             print(f"[{n}/{len(cells)}] {cell.key}: done earlier, skipped", flush=True)
-            continue
+        else:
+            todo.append((n, cell))
+
+    def run(n: int, cell: Cell) -> dict:
         folder = out / "runs" / name / f"{cell.folder_name}-{cell.fingerprint()}"
         print(f"[{n}/{len(cells)}] {cell.key}: running (log: {folder / 'bench.log'})", flush=True)
-        result = run_cell_subprocess(cell, folder, opts.device)
-        result.update({"fingerprint": cell.fingerprint(), "method": cell.method, "scene": cell.scene,
-                       "label": cell.label, "overrides": cell.overrides})
-        results["cells"][cell.key] = result
-        results["updated"] = time.strftime("%Y-%m-%d %H:%M:%S")
-        save_results(json_path, results)
-        md_path.write_text(markdown_report(cells, results))
-        if result["status"] == "finished":
-            s = result["summary"]
-            print(f"    PSNR {s.get('train_psnr', float('nan')):.2f} dB, SSIM {s.get('train_ssim', float('nan')):.3f}"
-                  f" ({result['how']}, {result['wall_s']:.0f} s)", flush=True)
-        else:
-            failed += 1
-            print(f"    FAILED: {result['error']}", flush=True)
+        return run_cell_subprocess(cell, folder, opts.device, threads)
+
+    failed = 0
+    # Cells run in their own processes; threads here only wait on them, and results are
+    # recorded from this thread as each finishes, so the results file has one writer.
+    with ThreadPoolExecutor(max_workers=opts.jobs) as pool:
+        running = {pool.submit(run, n, cell): (n, cell) for n, cell in todo}
+        for future in as_completed(running):
+            n, cell = running[future]
+            result = future.result()
+            result.update({"fingerprint": cell.fingerprint(), "method": cell.method, "scene": cell.scene,
+                           "label": cell.label, "overrides": cell.overrides})
+            results["cells"][cell.key] = result
+            results["updated"] = time.strftime("%Y-%m-%d %H:%M:%S")
+            save_results(json_path, results)
+            md_path.write_text(markdown_report(cells, results))
+            if result["status"] == "finished":
+                s = result["summary"]
+                print(f"[{n}/{len(cells)}] {cell.key}: PSNR {s.get('train_psnr', float('nan')):.2f} dB, "
+                      f"SSIM {s.get('train_ssim', float('nan')):.3f} ({result['how']}, {result['wall_s']:.0f} s)",
+                      flush=True)
+            else:
+                failed += 1
+                print(f"[{n}/{len(cells)}] {cell.key}: FAILED: {result['error']}", flush=True)
     results["updated"] = time.strftime("%Y-%m-%d %H:%M:%S")
     save_results(json_path, results)
     md_path.write_text(markdown_report(cells, results))
