@@ -35,6 +35,7 @@ class TrainerConfig:
     joint_patches: int = 1  # joint batch: this many patches ...
     joint_patch_size: int = 64  # ... of this size (paper: one 64 x 64 patch, 4096 rays)
     latent_steps: int = 5  # latent updates after each joint network update
+    latent_patch_size: int = 0  # latent updates on a random crop of the step's window (0: all of it)
     langevin_noise_steps: int = 2  # the first k of them add Langevin noise
     langevin_step: float = 0.03  # d in x <- x - d^2/2 (grad E + x / prior_var) + d * noise
     langevin_prior_var: float = 50.0

@@ -16,7 +16,7 @@ from rainyscape.components import LossContext, RenderOutput, TrainState
 from rainyscape.config import method_config
 from rainyscape.engine.pipeline import build_pipeline, compute_losses
 from rainyscape.fields.gaussians.densify import DensifySchedule, replace_params
-from rainyscape.fields.gaussians.field import GaussianField
+from rainyscape.fields.gaussians.field import GaussianField, growth_cap
 from rainyscape.fields.gaussians.ply import read_ply
 from rainyscape.fields.gaussians.sh import SH_C0, sh_basis, sh_to_rgb
 from rainyscape.losses.l1_ssim import L1SSIM
@@ -112,6 +112,17 @@ def test_schedule_scales_with_run_length():
     assert DensifySchedule.scaled(30_000, 30_000, 500, 15_000, 100, 3000, 1000).stop == 15_000
     # opacity resets keep a floor: recovering from one takes a fixed number of steps
     assert DensifySchedule.scaled(3000, 30_000, 500, 15_000, 100, 3000, 1000, 1000).reset_every == 1000
+    # and so do refinements: new Gaussians settle before they are judged again
+    assert DensifySchedule.scaled(3000, 30_000, 500, 15_000, 100, 3000, 1000, 1000, 100).every == 100
+
+
+def test_growth_cap_is_the_smaller_of_the_absolute_and_per_pixel_caps():
+    assert growth_cap(0, 0, 10_000) == 0  # no limit
+    assert growth_cap(40_000, 0, 10_000) == 40_000
+    assert growth_cap(40_000, 20, 18 * 64 * 64) == 3686  # a 64 px scene: the per-pixel cap
+    assert growth_cap(40_000, 20, 21 * 192 * 192) == 38_707
+    assert growth_cap(30_000, 20, 21 * 192 * 192) == 30_000
+    assert growth_cap(0, 20, 18 * 64 * 64) == 3686
 
 
 def test_replace_params_keeps_adam_state_consistent():

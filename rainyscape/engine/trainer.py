@@ -20,7 +20,7 @@ from rainyscape.cameras import Window
 from rainyscape.components import LossContext, ParamGroup, RenderOutput, TrainState
 from rainyscape.engine.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from rainyscape.engine.pipeline import Pipeline, compute_losses
-from rainyscape.engine.sampling import gather_pixels, sample_windows
+from rainyscape.engine.sampling import crop_batch, gather_pixels, sample_windows
 from rainyscape.eval.metrics import psnr
 from rainyscape.rain.langevin import langevin_step
 
@@ -139,11 +139,16 @@ class Trainer:
         latents = self.p.rain_head.latents()
         if not latents or self.cfg.latent_steps <= 0:
             return
-        rendered = ctx.rendered.detach()
+        ctx = replace(ctx, rendered=ctx.rendered.detach())
+        size = self.cfg.latent_patch_size
+        if 0 < size < max(window.width, window.height):
+            # A whole-view step (3DGS) would make each latent step a whole-view rain-head
+            # pass; a crop of the same view and residual gives the latents the same signal.
+            window, ctx = crop_batch(window, ctx, size, self.generator)
         terms = self.p.loss_terms("joint")
         for k in range(self.cfg.latent_steps):
             rain = self.p.rain_head(view_ids.to(self.device), window)
-            energy, _ = compute_losses(terms, replace(ctx, rendered=rendered, rain=rain))
+            energy, _ = compute_losses(terms, replace(ctx, rain=rain))
             grads = torch.autograd.grad(energy, latents, allow_unused=True)
             langevin_step(latents, list(grads), self.cfg.langevin_step, self.cfg.langevin_prior_var,
                           noise=k < self.cfg.langevin_noise_steps, generator=self.generator)

@@ -36,18 +36,21 @@ class DensifySchedule:
 
     @staticmethod
     def scaled(max_iters: int, reference_iters: int, start: int, stop: int, every: int,
-               reset_every: int, sh_every: int, min_reset_every: int = 0) -> "DensifySchedule":
+               reset_every: int, sh_every: int, min_reset_every: int = 0,
+               min_every: int = 0) -> "DensifySchedule":
         """The schedule given for a ``reference_iters`` run, stretched to ``max_iters``.
 
         Opacity resets stay at least ``min_reset_every`` apart: after one, Adam needs a
-        fixed number of steps (not a fraction of the run) to bring opacities back."""
+        fixed number of steps (not a fraction of the run) to bring opacities back. For the
+        same reason refinements stay at least ``min_every`` apart: new Gaussians need some
+        steps to settle before their gradients say whether to split them again."""
         f = max_iters / reference_iters
 
         def s(x: int) -> int:
             return max(1, round(x * f))
 
-        return DensifySchedule(s(start), s(stop), s(every), max(s(reset_every), min_reset_every),
-                               s(sh_every))
+        return DensifySchedule(s(start), s(stop), max(s(every), min_every),
+                               max(s(reset_every), min_reset_every), s(sh_every))
 
 
 def replace_params(params: nn.ParameterDict, optimizers: dict[str, torch.optim.Optimizer],

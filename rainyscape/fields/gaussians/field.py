@@ -35,6 +35,15 @@ def scene_extent(cameras: Cameras) -> float:
     return float(1.1 * (centers - centers.mean(0)).norm(dim=-1).max().clamp_min(1e-6))
 
 
+def growth_cap(max_gaussians: int, pixels_per_gaussian: int, train_pixels: int) -> int:
+    """The most Gaussians densification may reach (0: no limit). A cap per training pixel
+    keeps a 64 px scene from growing the Gaussians a 192 px one needs (and their cost)."""
+    caps = [max_gaussians] if max_gaussians > 0 else []
+    if pixels_per_gaussian > 0:
+        caps.append(max(1, train_pixels // pixels_per_gaussian))
+    return min(caps, default=0)
+
+
 def nearest_neighbour_scale(points: Tensor, k: int = 3) -> Tensor:
     """Mean distance from each point to its k nearest others (3DGS's initial scale)."""
     from scipy.spatial import cKDTree
@@ -78,13 +87,15 @@ class GaussianField(Field):
         refine_start: int = 500
         refine_stop: int = 15_000
         refine_every: int = 100
+        min_refine_every: int = 0  # refinements at least this many steps apart, whatever the run
         reset_every: int = 3000
         min_reset_every: int = 1000  # opacity resets at least this many steps apart, whatever the run
         grow_grad2d: float = 2e-4
         grow_scale3d: float = 0.01
         prune_opacity: float = 0.005
         prune_scale3d: float = 0.1
-        max_gaussians: int = 0  # growth stops at this many (0: no limit)
+        max_gaussians: int = 0  # growth stops at this many (0: no limit) ...
+        pixels_per_gaussian: int = 0  # ... or at training pixels / this, if fewer (0: off)
         seed: int = 0  # initial subset / random Gaussians
 
     def __init__(self, config: "GaussianField.Config | None", scene: SceneData):
@@ -97,6 +108,8 @@ class GaussianField(Field):
         if len(c.background) != 3:
             raise ConfigError("field.background needs three values (r, g, b)")
         self.width, self.height = scene.width, scene.height
+        train_pixels = len(scene.train_indices or range(scene.num_images)) * scene.width * scene.height
+        self.max_gaussians = growth_cap(c.max_gaussians, c.pixels_per_gaussian, train_pixels)
         self.extent = scene_extent(scene.cameras[scene.train_indices or list(range(scene.num_images))])
         self.transform, self.world_scale = scene.transform.clone(), float(scene.scale)
         self.params = nn.ParameterDict(self._initial_params(scene))
@@ -109,17 +122,20 @@ class GaussianField(Field):
     def _initial_params(self, scene: SceneData) -> dict[str, nn.Parameter]:
         c = self.config
         gen = torch.Generator().manual_seed(c.seed)
+        cap = self.max_gaussians or math.inf  # the growth cap bounds the start too
         if scene.points is not None and len(scene.points) > 0:
             points = scene.points.float()
             colors = (scene.point_colors.float() / 255.0 if scene.point_colors is not None
                       else torch.full_like(points, 0.5))
-            if len(points) > c.init_points:
-                pick = torch.randperm(len(points), generator=gen)[: c.init_points]
+            keep = int(min(c.init_points, cap))
+            if len(points) > keep:
+                pick = torch.randperm(len(points), generator=gen)[:keep]
                 points, colors = points[pick], colors[pick]
         else:
+            count = int(min(c.random_points, cap))
             lo, hi = scene.scene_box[0].float(), scene.scene_box[1].float()
-            points = lo + (hi - lo) * torch.rand(c.random_points, 3, generator=gen)
-            colors = torch.rand(c.random_points, 3, generator=gen)
+            points = lo + (hi - lo) * torch.rand(count, 3, generator=gen)
+            colors = torch.rand(count, 3, generator=gen)
         n = len(points)
         quats = torch.zeros(n, 4)
         quats[:, 0] = 1.0
@@ -158,7 +174,7 @@ class GaussianField(Field):
         c = self.config
         return DensifySchedule.scaled(max_iters, c.reference_iters, c.refine_start, c.refine_stop,
                                       c.refine_every, c.reset_every, c.sh_degree_every,
-                                      c.min_reset_every)
+                                      c.min_reset_every, c.min_refine_every)
 
     # ---------------------------------------------------------------- render
 
@@ -214,7 +230,7 @@ class GaussianTraining(Callback):
         self.field = field
         c = field.config
         self.densifier = Densifier(c.grow_grad2d, c.grow_scale3d, c.prune_opacity,
-                                   c.prune_scale3d, c.max_gaussians, field.extent)
+                                   c.prune_scale3d, field.max_gaussians, field.extent)
         self.last_stats: dict[str, int] = {}
 
     def before_step(self, state: TrainState) -> None:
