@@ -292,6 +292,8 @@ def test_method_configs():
     assert {rs.losses[k].detach for k in ("likelihood", "reconstruction", "agr")} == {"rendered"}
     assert rs.losses["photometric"].phases == ("warmup",)
     assert "rain-mask-fusion" in rs.postprocess
+    # whole views in both phases, as 3dgs; latent updates on a 64 x 64 crop
+    assert (rs.trainer.joint_patch_size, rs.trainer.latent_patch_size) == (0, 64)
 
 
 def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):

@@ -75,17 +75,6 @@ def test_output_is_non_negative_and_bounded():
     assert rain.min() >= 0 and rain.max() <= 0.05 and rain.max() > 0.04
 
 
-def test_grey_rain_is_one_map_for_all_channels():
-    scene = _scene()
-    head = _head(scene, grey=True)
-    with torch.no_grad():
-        full = head(torch.tensor([1]), Window.full(scene.cameras[[1]]))[0]
-        window = head(torch.tensor([1]), Window(torch.tensor([5]), torch.tensor([3]), 13, 11))[0]
-    assert full.shape == (3, 37, 45) and full.std() > 0
-    assert torch.equal(full[0], full[1]) and torch.equal(full[0], full[2])
-    assert torch.allclose(window, full[:, 3:14, 5:18], atol=1e-6)
-
-
 def test_views_are_independent():
     # No recurrence between views: changing view 0's state leaves view 2's rain unchanged.
     scene = _scene()

@@ -64,7 +64,6 @@ class RainPredictor(RainHead):
         upscale: int = 2  # latent map at image size / upscale; PixelShuffle restores it
         lowres_channels: tuple[int, ...] = (512, 256, 128, 128)  # 3x3 convs at latent resolution
         highres_channels: int = 64  # channels after PixelShuffle
-        grey: bool = False  # one rain channel for R, G and B (rain streaks are achromatic)
         activation: Literal["softplus", "relu"] = "softplus"  # output non-linearity (authors: relu)
         initial_rain: float = 0.01  # softplus: R starts near this level everywhere
         max_rain: float = 1.0  # R = m tanh(act(x) / m) keeps R in [0, m]; 0: unbounded
@@ -100,7 +99,7 @@ class RainPredictor(RainHead):
         widths = [c.latent_channels, *c.lowres_channels]
         self.lowres = nn.ModuleList(nn.Conv2d(a, b, 3) for a, b in zip(widths[:-1], widths[1:]))
         self.to_subpixels = nn.Conv2d(widths[-1], c.highres_channels * c.upscale ** 2, 3)
-        self.to_rgb = nn.Conv2d(c.highres_channels, 1 if c.grey else 3, 3)
+        self.to_rgb = nn.Conv2d(c.highres_channels, 3, 3)
         if c.activation == "softplus" and not 0 < c.initial_rain < 0.5:
             raise ConfigError(f"rain_head.initial_rain must be in (0, 0.5), got {c.initial_rain}")
         self._init_cnn()
@@ -151,7 +150,7 @@ class RainPredictor(RainHead):
         x = x * _inside(f * ay, f * ax, f * ly, f * lx, self.height, self.width)
         x = self.to_rgb(x)  # region starts at (f ay + 1, f ax + 1)
         x = _crop(x, y0 - f * ay - 1, x0 - f * ax - 1, window.height, window.width)
-        return self.bound(x).expand(-1, 3, -1, -1)
+        return self.bound(x)
 
     def bound(self, x: Tensor) -> Tensor:
         """Non-negative rain, softly bounded by ``max_rain`` (the AGR term rewards strong rain
