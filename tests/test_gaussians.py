@@ -328,3 +328,31 @@ def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):
     again.load()
     assert fresh.field.num_gaussians == pipe.field.num_gaussians
     assert torch.allclose(render_image(fresh, view), render_image(pipe, view))
+
+
+def test_rainyscape_3dgs_trains_whole_views_and_updates_latents_on_a_crop(tiny_scene, tmp_path):
+    """The joint phase renders whole views; the Langevin latent updates run on a crop and
+    still move the latents (of every view: the prior pulls them all)."""
+    from rainyscape.engine.trainer import Trainer
+
+    cfg = method_config("rainyscape-3dgs", ["trainer.max_iters=12", "trainer.warmup_fraction=0.25",
+                                            "trainer.latent_patch_size=16", "trainer.eval_every=0",
+                                            "trainer.checkpoint_every=0", "trainer.progress=false",
+                                            "field.init_points=500"])
+    torch.manual_seed(0)
+    pipe = build_pipeline(cfg, tiny_scene, torch.device("cpu"))
+    trainer = Trainer(pipe, tmp_path)
+    seen = []
+    predict = pipe.rain_head.forward
+
+    def recording_forward(view_ids, window):
+        seen.append((window.width, window.height))
+        return predict(view_ids, window)
+
+    pipe.rain_head.forward = recording_forward
+    views = pipe.rain_head.view_states.detach().clone()
+    trainer.train()
+    size = (tiny_scene.width, tiny_scene.height)
+    # 9 joint steps: one whole-view prediction, then 5 latent steps on 16 x 16 crops each
+    assert seen == [size, *[(16, 16)] * 5] * 9
+    assert not torch.equal(pipe.rain_head.view_states.detach(), views)
