@@ -20,7 +20,7 @@ import copy
 from rainyscape.config import ComponentConfig, LossConfig, MethodSpec, PipelineConfig, TrainerConfig
 from rainyscape.methods.rainyscape_nerf import PAPER_WEIGHTS
 
-GS_ITERS = 2000  # CPU-friendly run; the paper's is 30k (trainer.max_iters=30000)
+GS_ITERS = 1500  # CPU-friendly run (the demo in about 10 minutes on 2 cores); the paper's is 30k (trainer.max_iters=30000)
 PAPER_WARMUP = 4000 / 30000  # the paper's warm-up: 4k of 30k steps
 # A smaller rain head than the paper's (same layout), as rainyscape-nerf uses on a CPU.
 CPU_RAIN_HEAD = {"lowres_channels": (32, 32, 32, 32), "highres_channels": 16}
