@@ -296,6 +296,14 @@ def test_method_configs():
     assert (rs.trainer.joint_patch_size, rs.trainer.latent_patch_size) == (0, 64)
 
 
+def _quiet_pipeline(method: str, scene, overrides: list[str]):
+    """``method`` on ``scene`` with no periodic evaluation, checkpoints or progress bar."""
+    cfg = method_config(method, overrides + ["trainer.eval_every=0", "trainer.checkpoint_every=0",
+                                             "trainer.progress=false"])
+    torch.manual_seed(0)
+    return cfg, build_pipeline(cfg, scene, torch.device("cpu"))
+
+
 def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):
     """A few hundred steps of 3dgs on the 48 px tiny scene beat the initial render on the
     held-out view (clean image) by a margin measured on this scene: 12.96 -> 20.23-20.36 dB
@@ -305,12 +313,8 @@ def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):
     from rainyscape.eval.evaluate import render_image
     from rainyscape.eval.metrics import psnr
 
-    cfg = method_config("3dgs", ["trainer.max_iters=200", "trainer.warmup_patch_size=0",
-                                 "trainer.eval_every=0", "trainer.checkpoint_every=0",
-                                 "trainer.progress=false", "field.init_points=3000",
-                                 "field.max_gaussians=5000"])
-    torch.manual_seed(0)
-    pipe = build_pipeline(cfg, tiny_scene, torch.device("cpu"))
+    cfg, pipe = _quiet_pipeline("3dgs", tiny_scene, ["trainer.max_iters=200", "trainer.warmup_patch_size=0",
+                                                     "field.init_points=3000", "field.max_gaussians=5000"])
     view = tiny_scene.eval_indices[0]
     clean = tiny_scene.clean_images[view].permute(2, 0, 1).float() / 255
 
@@ -335,12 +339,8 @@ def test_rainyscape_3dgs_trains_whole_views_and_updates_latents_on_a_crop(tiny_s
     still move the latents (of every view: the prior pulls them all)."""
     from rainyscape.engine.trainer import Trainer
 
-    cfg = method_config("rainyscape-3dgs", ["trainer.max_iters=12", "trainer.warmup_fraction=0.25",
-                                            "trainer.latent_patch_size=16", "trainer.eval_every=0",
-                                            "trainer.checkpoint_every=0", "trainer.progress=false",
-                                            "field.init_points=500"])
-    torch.manual_seed(0)
-    pipe = build_pipeline(cfg, tiny_scene, torch.device("cpu"))
+    _, pipe = _quiet_pipeline("rainyscape-3dgs", tiny_scene, ["trainer.max_iters=12", "trainer.warmup_fraction=0.25",
+                                                             "trainer.latent_patch_size=16", "field.init_points=500"])
     trainer = Trainer(pipe, tmp_path)
     seen = []
     predict = pipe.rain_head.forward

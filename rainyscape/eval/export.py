@@ -17,9 +17,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rainyscape.dataparsers.writers import transforms_meta
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.errors import ConfigError
-
 
 
 # ------------------------------------------------------------------------------ mesh
@@ -112,8 +112,6 @@ def export_cameras(pipeline: Pipeline, out_dir: Path, images: bool = True) -> di
     """``transforms.json`` and, with ``images``, the de-rained render of every view."""
     from rainyscape.eval.evaluate import render_image
     from rainyscape.eval.images import save_png, to_uint8
-
-    from rainyscape.dataparsers.writers import transforms_meta
 
     scene = pipeline.scene
     names = [f"images/{Path(n).stem}.png" for n in scene.image_names]

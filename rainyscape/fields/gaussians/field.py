@@ -108,9 +108,10 @@ class GaussianField(Field):
         if len(c.background) != 3:
             raise ConfigError("field.background needs three values (r, g, b)")
         self.width, self.height = scene.width, scene.height
-        train_pixels = len(scene.train_indices or range(scene.num_images)) * scene.width * scene.height
-        self.max_gaussians = growth_cap(c.max_gaussians, c.pixels_per_gaussian, train_pixels)
-        self.extent = scene_extent(scene.cameras[scene.train_indices or list(range(scene.num_images))])
+        train = scene.train_indices or list(range(scene.num_images))
+        self.max_gaussians = growth_cap(c.max_gaussians, c.pixels_per_gaussian,
+                                        len(train) * scene.width * scene.height)
+        self.extent = scene_extent(scene.cameras[train])
         self.transform, self.world_scale = scene.transform.clone(), float(scene.scale)
         self.params = nn.ParameterDict(self._initial_params(scene))
         self.register_buffer("background", torch.tensor(c.background, dtype=torch.float32))
