@@ -56,7 +56,7 @@ def timed_steps(trainer, count: int) -> list[float]:
 
 @torch.no_grad()
 def heldout_metrics(trainer) -> dict:
-    from rainyscape.eval.metrics import psnr, ssim
+    from rainyscape.imaging.metrics import psnr, ssim
 
     scene, psnrs, ssims = trainer.scene, [], []
     for i in scene.eval_indices:

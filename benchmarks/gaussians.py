@@ -31,7 +31,7 @@ from rainyscape.cameras import Cameras, Window
 from rainyscape.fields.gaussians.field import GaussianField
 from rainyscape.fields.gaussians.projection import project_gaussians
 from rainyscape.fields.gaussians.rasterize import rasterize
-from rainyscape.fields.gaussians.reference import composite_pixels
+from rainyscape.testing.reference_rasterizer import composite_pixels
 from rainyscape.scene import SceneData
 
 SIZE = 256

@@ -2,7 +2,7 @@
 
 For every setting (derivative kernel, histogram smoothing passes, bins) and every streak
 angle 0, 5, ..., 175 degrees, ``--seeds`` random 64 x 64 images are made with
-:mod:`rainyscape.rain.streaks`; the table gives the mean and worst error of the estimated
+:mod:`rainyscape.testing.streaks`; the table gives the mean and worst error of the estimated
 streak direction and the share of estimates off by more than 3 degrees, plus the share of
 two-direction mixtures (30 and 110 degrees) where K = 2 finds both within 3 degrees.
 
@@ -16,8 +16,8 @@ import math
 
 import torch
 
-from rainyscape.rain.angles import estimate_rain_angles, streak_angle
-from rainyscape.rain.streaks import angle_error_deg, streak_layer, textured_background
+from rainyscape.imaging.angles import angle_difference_deg, estimate_rain_angles, streak_angle
+from rainyscape.testing.streaks import streak_layer, textured_background
 
 SETTINGS = [  # (kernel, smoothing passes, bins)
     ("sobel", 0, 60), ("sobel", 2, 60), ("scharr", 0, 60), ("scharr", 1, 60), ("scharr", 2, 60),
@@ -32,7 +32,7 @@ def single_direction_errors(kernel: str, smoothing: int, bins: int, seeds: int, 
             g = torch.Generator().manual_seed(seed * 1000 + angle)
             image = textured_background(64, g, contrast) + streak_layer(64, angle, 25, g)
             theta, _ = estimate_rain_angles(image, bins=bins, smoothing=smoothing, kernel=kernel)
-            errors.append(angle_error_deg(math.degrees(float(streak_angle(theta)[0, 0])), angle))
+            errors.append(angle_difference_deg(math.degrees(float(streak_angle(theta)[0, 0])), angle))
     return torch.tensor(errors)
 
 
@@ -44,7 +44,7 @@ def two_direction_success(kernel: str, smoothing: int, bins: int, seeds: int, co
                  + streak_layer(64, 110, 20, g))
         theta, _ = estimate_rain_angles(image, bins=bins, k=2, smoothing=smoothing, kernel=kernel)
         found = sorted(torch.rad2deg(streak_angle(theta))[0].tolist())
-        hits += angle_error_deg(found[0], 30) <= 3 and angle_error_deg(found[1], 110) <= 3
+        hits += angle_difference_deg(found[0], 30) <= 3 and angle_difference_deg(found[1], 110) <= 3
     return hits / seeds
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor, nn
@@ -179,3 +179,33 @@ class DataParser:
 
     def parse(self, path: Path) -> SceneData:
         raise NotImplementedError  # abstract
+
+
+# ------------------------------------------------------------------ declared capabilities
+# Optional abilities a component states by implementing them; callers check with
+# isinstance(obj, Protocol) instead of probing attribute names.
+
+
+@runtime_checkable
+class DensityField(Protocol):
+    """A field with a volume density (for meshing)."""
+
+    def density(self, points: Tensor) -> Tensor:
+        """Volume density (P,) at world points (P, 3) of the normalised scene."""
+
+
+@runtime_checkable
+class PlyExportable(Protocol):
+    """A field that writes itself as a standard 3DGS ``.ply``."""
+
+    def export_ply(self, path: Path) -> None: ...
+
+
+@runtime_checkable
+class HasEmbeddings(Protocol):
+    """A rain head whose prediction is steered by a scene state, per-view states and per-view
+    camera vectors (the paper's s, v_i and p_i; the embedding study perturbs them)."""
+
+    scene_state: Tensor  # (D,)
+    view_states: Tensor  # (N, D)
+    camera_vectors: Tensor  # (N, P)

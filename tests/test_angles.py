@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from rainyscape.rain.angles import (bin_centers, estimate_rain_angles, histogram_peaks,
-                                    orientation_histogram, streak_angle)
-from rainyscape.rain.streaks import angle_error_deg, streak_layer, textured_background
+from rainyscape.imaging.angles import (angle_difference_deg, bin_centers, estimate_rain_angles,
+                                       histogram_peaks, orientation_histogram, streak_angle)
+from rainyscape.testing.streaks import streak_layer, textured_background
 
 
 def _rainy(angle_deg: float, seed: int, count: int = 25) -> torch.Tensor:
@@ -24,7 +24,7 @@ def test_recovers_streak_angle_on_textured_background(angle, seed):
     theta, valid = estimate_rain_angles(_rainy(angle, seed), bins=60, k=1)
     assert valid.all()
     estimate = math.degrees(float(streak_angle(theta)[0, 0]))
-    assert angle_error_deg(estimate, angle) <= 3.0
+    assert angle_difference_deg(estimate, angle) <= 3.0
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -34,13 +34,13 @@ def test_recovers_two_directions_with_k2(seed):
     theta, valid = estimate_rain_angles(image, k=2)
     assert valid.all()
     found = sorted(torch.rad2deg(streak_angle(theta))[0].tolist())
-    assert angle_error_deg(found[0], 30) <= 3.0 and angle_error_deg(found[1], 110) <= 3.0
+    assert angle_difference_deg(found[0], 30) <= 3.0 and angle_difference_deg(found[1], 110) <= 3.0
 
 
 def test_theta_is_across_the_streaks():
     # Vertical streaks (90 degrees): their gradients are horizontal, theta near 0 or 180.
     theta, _ = estimate_rain_angles(_rainy(90.0, 0), k=1)
-    assert angle_error_deg(math.degrees(float(theta[0, 0])), 0.0) <= 3.0
+    assert angle_difference_deg(math.degrees(float(theta[0, 0])), 0.0) <= 3.0
 
 
 def test_angle_is_the_bin_centre_in_radians():
@@ -76,4 +76,4 @@ def test_batched_estimates_are_per_image():
     batch = torch.cat([_rainy(20.0, 0), _rainy(135.0, 1)])
     theta, _ = estimate_rain_angles(batch)
     est = torch.rad2deg(streak_angle(theta))[:, 0].tolist()
-    assert angle_error_deg(est[0], 20) <= 3 and angle_error_deg(est[1], 135) <= 3
+    assert angle_difference_deg(est[0], 20) <= 3 and angle_difference_deg(est[1], 135) <= 3

@@ -8,9 +8,9 @@ import math
 import pytest
 import torch
 
-from rainyscape.eval.evaluate import (angle_difference_deg, correlation, evaluate_pipeline, mean_angle_deg,
-                                      write_metrics)
-from rainyscape.eval.metrics import psnr, ssim
+from rainyscape.eval.evaluate import correlation, evaluate_pipeline, write_metrics
+from rainyscape.imaging.angles import angle_difference_deg, mean_angle_deg
+from rainyscape.imaging.metrics import psnr, ssim
 from _eval_fixtures import OFFSET, make_pipeline
 
 

@@ -269,7 +269,7 @@ def test_l1_ssim_loss_and_authors_split():
 
 
 def _ssim(a, b):
-    from rainyscape.eval.metrics import ssim
+    from rainyscape.imaging.metrics import ssim
 
     return ssim(a, b, padding="same").item()
 
@@ -311,7 +311,7 @@ def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):
     every step; uncapped, 48 px views grow to 40000 and the fit takes 5x longer)."""
     from rainyscape.engine.trainer import Trainer
     from rainyscape.eval.evaluate import render_image
-    from rainyscape.eval.metrics import psnr
+    from rainyscape.imaging.metrics import psnr
 
     cfg, pipe = _quiet_pipeline("3dgs", tiny_scene, ["trainer.max_iters=200", "trainer.warmup_patch_size=0",
                                                      "field.init_points=3000", "field.max_gaussians=5000"])

@@ -10,9 +10,9 @@ import torch
 from rainyscape.components import LossContext, RenderOutput
 from rainyscape.errors import ConfigError
 from rainyscape.losses.agr import AdaptiveGradientRotation, agr_loss, mean_abs_derivative
-from rainyscape.losses.image_ops import directional_derivative, image_gradients
+from rainyscape.imaging.gradients import directional_derivative, image_gradients
 from rainyscape.losses.rain_losses import Likelihood, Reconstruction, TotalVariation
-from rainyscape.rain.streaks import streak_layer, textured_background
+from rainyscape.testing.streaks import streak_layer, textured_background
 
 
 def _ctx(rendered, target, rain, view_ids=(0,)):

@@ -9,7 +9,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from rainyscape.eval.metrics import psnr, ssim, ssim_map
+from rainyscape.imaging.metrics import psnr, ssim, ssim_map
 
 
 def _image(seed: int, h: int = 48, w: int = 56) -> torch.Tensor:

@@ -16,7 +16,7 @@ from rainyscape.fields.gaussians.projection import candidate_gaussians, project_
 from rainyscape.fields.gaussians.rasterize import rasterize, resolve_backend
 from rainyscape.fields.gaussians.rasterize_gsplat import gsplat_installed
 from rainyscape.fields.gaussians.rasterize_torch import bin_gaussians, composite, min_sigma_in_boxes
-from rainyscape.fields.gaussians.reference import composite_dense
+from rainyscape.testing.reference_rasterizer import composite_dense
 from rainyscape.fields.gaussians.sh import sh_to_rgb
 
 W, H = 45, 37  # not multiples of the 16-pixel tile

@@ -47,13 +47,14 @@ def main(argv: list[str]) -> int:
     if opts.resolution < 8:
         raise ConfigError(f"rs-export: resolution must be at least 8, got {opts.resolution}")
     from rainyscape.engine.run import load_run
+    from rainyscape.components import PlyExportable
     from rainyscape.eval import export
 
     pipeline, step = load_run(run_dir, opts.device)
     out = Path(opts.out) if opts.out else run_dir / "export"
     what = opts.what
     if what == "auto":
-        what = "gaussians" if hasattr(pipeline.field, "export_ply") else "mesh"
+        what = "gaussians" if isinstance(pipeline.field, PlyExportable) else "mesh"
     results = []
     if what == "gaussians":
         results.append(export.export_gaussians(pipeline, out / "point_cloud.ply"))

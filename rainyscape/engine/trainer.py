@@ -21,7 +21,7 @@ from rainyscape.components import LossContext, ParamGroup, RenderOutput, TrainSt
 from rainyscape.engine.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from rainyscape.engine.pipeline import Pipeline, compute_losses
 from rainyscape.engine.sampling import crop_batch, gather_pixels, sample_windows
-from rainyscape.eval.metrics import psnr
+from rainyscape.imaging.metrics import psnr
 from rainyscape.rain.langevin import langevin_step
 
 

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from rainyscape.cameras import Window
+from rainyscape.components import HasEmbeddings
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.errors import ConfigError
 from rainyscape.eval.evaluate import streak_angle_deg, to_float
@@ -59,10 +60,9 @@ def embedding_study(pipeline: Pipeline, views: list[int] | None = None, patch: i
     head = pipeline.rain_head
     if head is None:
         raise ConfigError(f"method {pipeline.config.method} has no rain head: no embedding to study")
-    missing = [a for a in PERTURBATIONS.values() if not hasattr(head, a)]
-    if missing:
+    if not isinstance(head, HasEmbeddings):
         raise ConfigError(f"rain head '{pipeline.config.rain_head.name}' does not expose "
-                          f"{', '.join(missing)}; the embedding study needs them")
+                          f"{', '.join(PERTURBATIONS.values())}; the embedding study needs them")
     head.eval()
     scene = pipeline.scene
     views = views if views is not None else list(scene.train_indices[:2])

@@ -27,7 +27,9 @@ from torch import Tensor
 from rainyscape.cameras import Cameras, Window
 from rainyscape.components import RenderOutput
 from rainyscape.engine.pipeline import Pipeline
-from rainyscape.eval.metrics import psnr, ssim
+from rainyscape.imaging.angles import (angle_difference_deg, estimate_rain_angles, mean_angle_deg,
+                                       streak_angle)
+from rainyscape.imaging.metrics import psnr, ssim
 from rainyscape.eval.perceptual import LpipsMetric, load_lpips
 
 STRIP_VIEWS = 3  # training views whose comparison strips evaluation saves for the report
@@ -132,8 +134,6 @@ def streak_angles_deg(image: Tensor, options: dict) -> list[float]:
     """Directions the dominant streaks run along (``options["k"]`` of them, strongest first),
     degrees in [0, 180) from the image +x axis towards +y (down), estimated as the AGR loss
     does; empty if the image has no edges."""
-    from rainyscape.rain.angles import estimate_rain_angles, streak_angle
-
     theta, valid = estimate_rain_angles(image[None], **{"k": 1, **options})
     return [math.degrees(float(streak_angle(t))) for t, ok in zip(theta[0], valid[0]) if bool(ok)]
 
@@ -142,21 +142,6 @@ def streak_angle_deg(image: Tensor, options: dict) -> float | None:
     """The dominant streak direction (see :func:`streak_angles_deg`), or None."""
     angles = streak_angles_deg(image, {**options, "k": 1})
     return angles[0] if angles else None
-
-
-def angle_difference_deg(a: float, b: float) -> float:
-    """Smallest difference of two undirected angles (period 180 degrees)."""
-    d = abs(a - b) % 180.0
-    return min(d, 180.0 - d)
-
-
-def mean_angle_deg(angles: list[float]) -> float | None:
-    """Circular mean of undirected angles (period 180): average the doubled angles."""
-    if not angles:
-        return None
-    s = sum(math.sin(math.radians(2 * a)) for a in angles)
-    c = sum(math.cos(math.radians(2 * a)) for a in angles)
-    return math.degrees(math.atan2(s, c)) / 2 % 180.0
 
 
 def correlation(a: Tensor, b: Tensor) -> float | None:

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from rainyscape.dataparsers.writers import transforms_meta
+from rainyscape.components import DensityField, PlyExportable
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.errors import ConfigError
 
@@ -73,7 +74,7 @@ def density_mesh(density: np.ndarray, level: float, origin: np.ndarray, spacing:
 def export_mesh(pipeline: Pipeline, path: Path, resolution: int = 128, level: float | None = None,
                 margin: float = 0.05) -> dict:
     field, scene = pipeline.field, pipeline.scene
-    if not hasattr(field, "density"):
+    if not isinstance(field, DensityField):
         raise ConfigError(f"field '{pipeline.config.field.name}' has no density(points): "
                           "it cannot be meshed")
     box = scene.scene_box.float().cpu()
@@ -97,7 +98,7 @@ def export_mesh(pipeline: Pipeline, path: Path, resolution: int = 128, level: fl
 def export_gaussians(pipeline: Pipeline, path: Path) -> dict:
     """The field's standard 3DGS ``.ply`` (Gaussian fields write it themselves)."""
     field = pipeline.field
-    if not hasattr(field, "export_ply"):
+    if not isinstance(field, PlyExportable):
         raise ConfigError(f"field '{pipeline.config.field.name}' has no export_ply(path): "
                           "it is not a Gaussian field")
     path.parent.mkdir(parents=True, exist_ok=True)

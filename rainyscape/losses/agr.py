@@ -1,7 +1,7 @@
 """Adaptive gradient rotation (AGR) loss of the paper (III-D).
 
 Per patch, the dominant gradient directions theta_k of the residual I - B (detached) are
-estimated (:mod:`rainyscape.rain.angles`); theta points ACROSS the rain streaks. Then
+estimated (:mod:`rainyscape.imaging.angles`); theta points ACROSS the rain streaks. Then
 
     L = 1/K sum_k  mean|D_{theta_k + pi/2} R| - mean|D_{theta_k} R|
                    + w (mean|D_{theta_k} B| + mean|D_{theta_k} (I - R)|)
@@ -22,8 +22,8 @@ from torch import Tensor
 
 from rainyscape.components import Loss, LossContext
 from rainyscape.errors import ConfigError
-from rainyscape.losses.image_ops import GRADIENT_KERNELS, image_gradients, steer
-from rainyscape.rain.angles import estimate_rain_angles, streak_angle
+from rainyscape.imaging.gradients import GRADIENT_KERNELS, image_gradients, steer
+from rainyscape.imaging.angles import estimate_rain_angles, streak_angle
 
 
 def mean_abs_derivative(images: Tensor, theta: Tensor, kernel: str = "scharr") -> Tensor:

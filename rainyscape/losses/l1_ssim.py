@@ -14,7 +14,7 @@ from torch import Tensor
 
 from rainyscape.components import Loss, LossContext
 from rainyscape.errors import ConfigError
-from rainyscape.eval.metrics import ssim
+from rainyscape.imaging.metrics import ssim
 
 
 class L1SSIM(Loss):

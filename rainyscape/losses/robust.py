@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from rainyscape.components import Loss, LossContext
-from rainyscape.eval.metrics import ssim_map
+from rainyscape.imaging.metrics import ssim_map
 
 
 def pixel_residuals(rendered: Tensor, target: Tensor, kind: str) -> Tensor:

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from rainyscape.errors import ConfigError, DataError
-from rainyscape.eval.metrics import psnr, ssim
+from rainyscape.imaging.metrics import psnr, ssim
 from rainyscape.synth import layout
 from rainyscape.synth.presets import PRESETS
 from rainyscape.synth.params import SIM_VERSION, RainConfig

@@ -46,8 +46,3 @@ def streak_layer(size: int, angle_deg: float, count: int, generator: torch.Gener
     ends = torch.clamp(length / 2 + 0.5 - along.abs(), 0.0, 1.0)  # soft, anti-aliased tips
     value = torch.exp(-across ** 2 / (2 * width ** 2)) * ends
     return brightness * value.amax(1).reshape(1, 1, size, size)
-
-
-def angle_error_deg(estimate_deg: float, truth_deg: float) -> float:
-    """Absolute difference of two orientations in degrees, modulo 180."""
-    return abs((estimate_deg - truth_deg + 90.0) % 180.0 - 90.0)

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from rainyscape.losses.image_ops import gradient_orientation
+from rainyscape.imaging.gradients import gradient_orientation
 
 
 def orientation_histogram(residual: Tensor, bins: int = 60, threshold: float = 0.1,
@@ -87,3 +87,18 @@ def estimate_rain_angles(residual: Tensor, bins: int = 60, k: int = 1, threshold
 def streak_angle(theta: Tensor) -> Tensor:
     """Direction the streaks run along (radians in [0, pi)) for gradient direction theta."""
     return torch.remainder(theta + math.pi / 2, math.pi)
+
+
+def angle_difference_deg(a: float, b: float) -> float:
+    """Smallest difference of two undirected angles in degrees (period 180)."""
+    d = abs(a - b) % 180.0
+    return min(d, 180.0 - d)
+
+
+def mean_angle_deg(angles: list[float]) -> float | None:
+    """Circular mean of undirected angles in degrees (period 180): average the doubled angles."""
+    if not angles:
+        return None
+    s = sum(math.sin(math.radians(2 * a)) for a in angles)
+    c = sum(math.cos(math.radians(2 * a)) for a in angles)
+    return math.degrees(math.atan2(s, c)) / 2 % 180.0
