@@ -76,13 +76,13 @@ def main(argv: list[str]) -> int:
     args, overrides = parser.parse_known_args(argv)
 
     from rainyscape import config
-    from rainyscape.engine.run import train_run
+    from rainyscape.workflow import train_and_evaluate
     from rainyscape.fields.grid import growth_resolution
 
     defaults = ["trainer.eval_every=25", "trainer.eval_views=3", "trainer.checkpoint_every=0",
                 f"trainer.output_dir={args.out}/runs"]
     cfg = config.method_config(args.method, defaults + overrides + ([f"data={args.data}"] if args.data else []))
-    result = train_run(cfg)
+    result = train_and_evaluate(cfg)
     curve = read_curve(result.run_dir / "log.jsonl")
     if not curve or "train_psnr_clean" not in curve[0]:
         print("error: the scene has no clean images to compare with", file=sys.stderr)

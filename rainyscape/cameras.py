@@ -126,6 +126,17 @@ class Window:
         xs = self.x0.to(dev)[:, None, None] + jj[None, None, :]
         return xs.expand(-1, self.height, -1), ys.expand(-1, -1, self.width)
 
+    def random_subwindow(self, size: int, generator: torch.Generator) -> "Window":
+        """A random ``size`` x ``size`` window inside each of these (image-absolute offsets)."""
+        w, h = min(size, self.width), min(size, self.height)
+        dx = torch.randint(self.width - w + 1, (len(self),), generator=generator)
+        dy = torch.randint(self.height - h + 1, (len(self),), generator=generator)
+        return Window(self.x0 + dx, self.y0 + dy, w, h)
+
+    def relative_to(self, outer: "Window") -> "Window":
+        """This window in the pixel coordinates of ``outer`` (which contains it)."""
+        return Window(self.x0 - outer.x0, self.y0 - outer.y0, self.width, self.height)
+
     def crop(self, images: Tensor) -> Tensor:
         """Cut the window out of per-view images (B, C, H, W) -> (B, C, h, w)."""
         xs, ys = self.pixel_grid(images.device)

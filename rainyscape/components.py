@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Callable, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor, nn
@@ -24,10 +24,11 @@ from rainyscape.scene import SceneData
 
 @dataclass
 class ParamGroup:
-    """Parameters sharing one Adam optimiser and learning-rate schedule.
+    """Parameters sharing one Adam optimiser and one learning-rate schedule.
 
-    lr(step) = lr * lr_decay ** (step / lr_decay_steps) (no decay when lr_decay_steps is 0);
-    in the joint phase ``lr_joint`` (when set) replaces it, as the paper does for NeRF.
+    lr(step) = lr * lr_decay ** (step / span), span = ``lr_decay_steps`` or, when that is 0,
+    the whole run (so ``lr_decay`` is then the final lr over the initial one, as 3DGS's
+    position lr). A phase may scale or fix the field's lr (``PhaseConfig``).
     """
 
     name: str
@@ -35,9 +36,14 @@ class ParamGroup:
     lr: float
     lr_decay: float = 1.0
     lr_decay_steps: int = 0
-    lr_joint: float | None = None
     betas: tuple[float, float] = (0.9, 0.999)
     eps: float = 1e-8
+
+    def lr_at(self, step: int, total_steps: int) -> float:
+        if self.lr_decay == 1.0:
+            return self.lr
+        span = self.lr_decay_steps or total_steps
+        return self.lr * self.lr_decay ** (step / span)
 
 
 @dataclass
@@ -54,8 +60,7 @@ class TrainState:
 
     step: int
     max_iters: int
-    warmup_iters: int
-    phase: str  # "warmup" | "joint"
+    phase: str  # the method's name for the current phase
     optimizers: dict[str, torch.optim.Optimizer]
     device: torch.device
 
@@ -102,10 +107,13 @@ class Field(nn.Module):
         return {}
 
 
-class RainHead(nn.Module):
-    """Predicts a rain layer R >= 0 for (view, window) from learnable latents."""
+class ImageHead(nn.Module):
+    """Predicts an additive image layer for (view, window): the observed image is the field's
+    render plus the layers of the heads active in the phase. ``layer`` names it for the
+    losses (``LossContext.layers``)."""
 
     description = ""
+    layer = ""
 
     def forward(self, view_ids: Tensor, window: Window) -> Tensor:  # (B, 3, h, w)
         raise NotImplementedError  # abstract
@@ -113,8 +121,28 @@ class RainHead(nn.Module):
     def param_groups(self) -> list[ParamGroup]:
         raise NotImplementedError  # abstract
 
+
+Energy = Callable[[Window, Tensor], Tensor]
+
+
+@runtime_checkable
+class LatentModel(Protocol):
+    """A head with latent variables that it updates itself after each network update."""
+
+    def update_latents(self, view_ids: Tensor, window: Window, energy: Energy,
+                       generator: torch.Generator) -> None:
+        """Update the latents with the networks frozen. ``energy(sub_window, prediction)`` is
+        the phase's loss for a prediction of ``sub_window`` (a window inside ``window``, with
+        the same offsets convention), everything else held at this step's values."""
+
+
+class RainHead(ImageHead):
+    """Predicts a rain layer R >= 0 for (view, window) from learnable latents."""
+
+    layer = "rain"
+
     def latents(self) -> list[nn.Parameter]:
-        """Latent variables updated by Langevin steps (not by the network optimiser)."""
+        """Latent variables updated by :meth:`update_latents` (not by the network optimiser)."""
         return []
 
 
@@ -123,22 +151,29 @@ class LossContext:
     """Everything a loss term may look at for one batch."""
 
     rendered: Tensor  # B: the field's render (B, 3, h, w)
-    target: Tensor  # I: the rainy input (B, 3, h, w)
-    rain: Tensor | None  # R: predicted rain (B, 3, h, w), None in warm-up
-    output: RenderOutput
+    target: Tensor  # I: the observed (rainy) input (B, 3, h, w)
+    layers: dict[str, Tensor]  # image layers predicted by the phase's heads, by name
+    output: RenderOutput | None
     view_ids: Tensor
     step: int
     phase: str
 
+    @property
+    def rain(self) -> Tensor | None:
+        """R: the predicted rain (B, 3, h, w), None where no rain head runs."""
+        return self.layers.get("rain")
+
 
 class Loss:
-    """A loss term: ``__call__(ctx) -> scalar``. ``phases`` are its default phases.
+    """A loss term: ``__call__(ctx) -> scalar``. ``phases`` are its default phases (used
+    where the method has them), ``needs`` the image layers it cannot do without.
 
     ``metrics`` may be filled during a call (floats) and is logged by the trainer.
     Stateful terms implement ``state_dict`` / ``load_state_dict`` for checkpoints.
     """
 
-    phases: tuple[str, ...] = ("joint",)
+    phases: tuple[str, ...] = ()
+    needs: tuple[str, ...] = ()
     description = ""
 
     def __init__(self, config: Any = None):

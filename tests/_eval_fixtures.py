@@ -99,8 +99,8 @@ class _Keep:
 def make_pipeline(with_rain: bool = True, post: bool = True) -> Pipeline:
     scene = make_scene()
     cfg = PipelineConfig(method="fake", dataparser=ComponentConfig("auto"), field=ComponentConfig("fake"))
-    head = TrueRainHead(scene) if with_rain else None
-    return Pipeline(cfg, scene, OracleField(scene), head, {}, {"keep": _Keep()} if post and with_rain else {},
+    heads = {"rain_head": TrueRainHead(scene)} if with_rain else {}
+    return Pipeline(cfg, scene, OracleField(scene), heads, {}, {"keep": _Keep()} if post and with_rain else {},
                     torch.device("cpu"))
 
 

@@ -12,6 +12,9 @@ ENTRY_POINTS = """\
 direction = rs_toy_plugin:DirectionField
 broken-field = rs_toy_plugin.missing_module:Nothing
 
+[rainyscape.rain_heads]
+toy-rain = rs_toy_plugin:ToyRain
+
 [rainyscape.losses]
 mean-abs = rs_toy_plugin:MeanAbsolute
 

@@ -1,10 +1,9 @@
-"""Training batches: windows of views, and the latent update's crop of a batch."""
+"""Training batches: windows of views, and sub-windows of a batch (the latent update's crop)."""
 
 import torch
 
 from rainyscape.cameras import Window
-from rainyscape.components import LossContext
-from rainyscape.engine.sampling import crop_batch, gather_pixels, sample_windows
+from rainyscape.engine.sampling import gather_pixels, sample_windows
 
 
 def _images(n=3, h=20, w=24):
@@ -28,17 +27,17 @@ def test_whole_view_when_size_is_zero():
     assert (win.width, win.height) == (24, 20) and int(win.x0.abs().sum() + win.y0.abs().sum()) == 0
 
 
-def test_crop_batch_cuts_the_same_pixels_as_its_window():
+def test_subwindow_crop_cuts_the_same_pixels_as_its_window():
     images = _images()
     g = torch.Generator().manual_seed(2)
     views, win = sample_windows(torch.arange(3), 2, 16, 24, 20, g)
     target = gather_pixels(images, views, win)
     rendered, rain = target * 0.5, target * 0.25
-    ctx = LossContext(rendered, target, rain, None, views, 0, "joint")
-    sub, cut = crop_batch(win, ctx, 6, g)
+    sub = win.random_subwindow(6, g)
+    local = sub.relative_to(win)
     assert (sub.width, sub.height) == (6, 6)
     assert (sub.x0 >= win.x0).all() and (sub.x0 + 6 <= win.x0 + 16).all()
     direct = gather_pixels(images, views, sub)  # absolute offsets index the full images
-    assert torch.equal(cut.target, direct)
-    assert torch.equal(cut.rendered, direct * 0.5) and torch.equal(cut.rain, direct * 0.25)
-    assert isinstance(sub, Window) and cut.view_ids is views
+    assert torch.equal(local.crop(target), direct)
+    assert torch.equal(local.crop(rendered), direct * 0.5) and torch.equal(local.crop(rain), direct * 0.25)
+    assert isinstance(sub, Window)

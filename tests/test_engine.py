@@ -13,7 +13,8 @@ import torch
 from _plugins import install_toy_plugin
 from rainyscape import config, registry
 from rainyscape.engine.checkpoint import list_checkpoints, save_checkpoint
-from rainyscape.engine.run import load_run, train_run
+from rainyscape.engine.run import load_run
+from rainyscape.workflow import train_and_evaluate
 
 
 @pytest.fixture
@@ -80,8 +81,8 @@ def _params(pipeline) -> dict[str, torch.Tensor]:
 RESUME_CASES = {
     "toy": ["trainer.max_iters=12"],
     # rain head, Langevin noise and joint phase across the split: latents must resume exactly
-    "rainyscape-nerf": ["trainer.max_iters=12", "trainer.warmup_fraction=0.5",
-                        "trainer.warmup_patches=4", "trainer.joint_patch_size=16"],
+    "rainyscape-nerf": ["trainer.max_iters=12", "phases.warmup.end=0.5",
+                        "phases.warmup.patches=4", "phases.joint.patch_size=16"],
 }
 
 
@@ -90,13 +91,13 @@ def test_resume_reaches_the_same_parameters(method, toy_env, tiny_scene_dir, tmp
     common = [f"data={tiny_scene_dir}", "trainer.device=cpu", "trainer.progress=false",
               "trainer.eval_every=0", "trainer.checkpoint_every=0", *RESUME_CASES[method]]
     full_cfg = config.method_config(method, common + [f"trainer.output_dir={tmp_path}/a"])
-    full = train_run(full_cfg)
+    full = train_and_evaluate(full_cfg)
     split_cfg = config.method_config(method, common + [f"trainer.output_dir={tmp_path}/b", "trainer.stop_at=7"])
-    first = train_run(split_cfg)
+    first = train_and_evaluate(split_cfg)
     assert json.loads((first.run_dir / "status.json").read_text())["state"] == "stopped"
     resumed_cfg = config.load_yaml(first.run_dir / "config.yml")
     resumed_cfg.trainer.stop_at = 0
-    train_run(resumed_cfg, run_dir=first.run_dir)
+    train_and_evaluate(resumed_cfg, run_dir=first.run_dir)
     a, step_a = load_run(full.run_dir, device="cpu")
     b, step_b = load_run(first.run_dir, device="cpu")
     assert step_a == step_b == full_cfg.trainer.max_iters
@@ -110,13 +111,31 @@ def test_plugin_field_gets_the_rain_module_for_free(toy_env, tiny_scene_dir, tmp
     """A third-party field swapped into a built-in rain method, with a plugin loss added."""
     cfg = config.method_config("rainyscape-nerf", [
         f"data={tiny_scene_dir}", "field=direction", "losses.mean-abs.weight=0.5",
-        "losses.mean-abs.phases=warmup", "trainer.max_iters=16", "trainer.joint_patch_size=16",
+        "losses.mean-abs.phases=warmup", "trainer.max_iters=16", "phases.joint.patch_size=16",
         "trainer.eval_every=0", "trainer.log_every=1", "trainer.progress=false",
         f"trainer.output_dir={tmp_path}"])
-    result = train_run(cfg)
+    result = train_and_evaluate(cfg)
     assert json.loads((result.run_dir / "status.json").read_text())["state"] == "finished"
     records = [json.loads(line) for line in (result.run_dir / "log.jsonl").read_text().splitlines()]
     joint = [r for r in records if r.get("phase") == "joint" and "terms" in r]
     assert joint and {"likelihood", "reconstruction", "tv", "agr"} <= set(joint[-1]["terms"])
     warm = [r for r in records if r.get("phase") == "warmup" and "terms" in r]
     assert "mean-abs" in warm[-1]["terms"]
+
+
+def test_plugin_rain_head_trains_through_a_builtin_rain_method(toy_env, tiny_scene_dir, tmp_path):
+    """A third-party rain head (one class, one entry point) replaces the built-in one in
+    rainyscape-nerf: it predicts R in the joint phase and the rain losses train it."""
+    out_root = tmp_path / "outputs"
+    args = ["rs-train", "method=rainyscape-nerf", "rain_head=toy-rain", f"data={tiny_scene_dir}",
+            f"trainer.output_dir={out_root}", "trainer.max_iters=16", "phases.joint.patch_size=16",
+            "trainer.eval_every=0", "trainer.log_every=1", "trainer.progress=false", "trainer.device=cpu"]
+    done = subprocess.run(args, capture_output=True, text=True, env=toy_env)
+    assert done.returncode == 0, done.stderr
+    (run,) = _run_dirs(out_root)
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    joint = [r for r in records if r.get("phase") == "joint" and "terms" in r]
+    assert len(joint) == 8 and {"likelihood", "reconstruction", "agr"} <= set(joint[-1]["terms"])
+    pipeline, _ = load_run(run, device="cpu")
+    assert type(pipeline.rain_head).__name__ == "ToyRain"
+    assert not torch.equal(pipeline.rain_head.maps, torch.full_like(pipeline.rain_head.maps, -4.0))

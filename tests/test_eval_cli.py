@@ -19,13 +19,13 @@ ITERS = 8  # 4 warm-up steps, then 4 joint steps with the rain head: every outpu
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory, tiny_scene_dir) -> Path:
     from rainyscape.config import method_config
-    from rainyscape.engine.run import train_run
+    from rainyscape.workflow import train_and_evaluate
 
     out = tmp_path_factory.mktemp("eval_cli")
     cfg = method_config("rainyscape-nerf", [f"data={tiny_scene_dir}", f"trainer.max_iters={ITERS}",
                                             f"trainer.output_dir={out}", "trainer.device=cpu",
                                             "trainer.progress=false", "trainer.eval_every=4", "trainer.log_every=1"])
-    return train_run(cfg).run_dir
+    return train_and_evaluate(cfg).run_dir
 
 
 @dataclass

@@ -84,7 +84,8 @@ def test_nerf_mlp_coarse_loss_and_lr_schedule(tiny_scene):
     assert set(losses) == {"coarse"}
     assert losses["coarse"].item() == pytest.approx(((out.extras["rgb_coarse"] - target) ** 2).mean().item())
     (group,) = field.param_groups()
-    assert group.lr == 5e-4 and group.lr_joint == 1e-6  # the paper's lr after the warm-up
+    assert group.lr == 5e-4  # the paper's, and 1e-6 after the warm-up (a phase setting):
+    assert config.method_config("rainyscape-vanilla-nerf").phases["joint"].field_lr == 1e-6
     assert group.lr_decay == 0.1 and group.lr_decay_steps == 250_000
     assert len(group.params) == len(list(field.parameters()))
 
@@ -109,7 +110,7 @@ def test_growth_schedule_is_log_spaced_and_monotone():
 
 
 def _state(field, step, max_iters, optimizers):
-    return TrainState(step, max_iters, max_iters, "warmup", optimizers, torch.device("cpu"))
+    return TrainState(step, max_iters, "fit", optimizers, torch.device("cpu"))
 
 
 def _adam(field):
@@ -211,9 +212,9 @@ def test_density_for_export(name, tiny_scene):
 
 
 FIT = {  # short CPU fits on the 48 px tiny scene; floors measured (see docs/fields.md), minus margin
-    "nerf": (["trainer.max_iters=150", "trainer.warmup_patches=512", "field.resolution_final=48",
+    "nerf": (["trainer.max_iters=150", "phases.fit.patches=512", "field.resolution_final=48",
               "field.lr_decay_steps=150"], 0.0),
-    "vanilla-nerf": (["trainer.max_iters=150", "trainer.warmup_patches=512", "field.depth=4",
+    "vanilla-nerf": (["trainer.max_iters=150", "phases.fit.patches=512", "field.depth=4",
                       "field.width=64", "field.skips=2", "field.samples_coarse=24",
                       "field.samples_fine=24", "field.train_chunk=0", "field.lr=2e-3"], 0.0),
 }
@@ -221,13 +222,13 @@ FIT = {  # short CPU fits on the 48 px tiny scene; floors measured (see docs/fie
 
 @pytest.mark.parametrize("method", sorted(FIT))
 def test_short_fit_raises_heldout_psnr(method, tiny_scene_dir, tmp_path):
-    from rainyscape.engine.run import train_run
+    from rainyscape.workflow import train_and_evaluate
 
     overrides, floor = FIT[method]
     cfg = config.method_config(method, [f"data={tiny_scene_dir}", f"trainer.output_dir={tmp_path}",
                                         "trainer.eval_every=0", "trainer.checkpoint_every=0",
                                         "trainer.progress=false", *overrides])
-    result = train_run(cfg)
+    result = train_and_evaluate(cfg)
     summary = result.metrics["summary"]
     print(method, {k: round(v, 2) for k, v in summary.items()})
     assert summary["heldout_psnr"] > floor

@@ -31,7 +31,7 @@ def adam_for(field: GaussianField) -> dict[str, torch.optim.Adam]:
 
 
 def train_state(optimizers, step=0, max_iters=100) -> TrainState:
-    return TrainState(step, max_iters, 0, "warmup", optimizers, torch.device("cpu"))
+    return TrainState(step, max_iters, "fit", optimizers, torch.device("cpu"))
 
 
 def test_initialises_from_scene_points(tiny_scene):
@@ -197,8 +197,8 @@ def test_callback_schedule_sh_degree_lr_and_densification(tiny_scene):
     state = train_state(opts, step=49, max_iters=100)
     cb.before_step(state)
     assert int(field.active_sh_degree) == 3  # (49 + 1) // 1 step per degree at this scale
-    assert opts["means"].param_groups[0]["lr"] == pytest.approx(
-        1.6e-4 * field.extent * 0.01 ** 0.49)
+    means = next(g for g in field.param_groups() if g.name == "means")  # the schedule it states
+    assert means.lr_at(state.step, state.max_iters) == pytest.approx(1.6e-4 * field.extent * 0.01 ** 0.49)
     cams = tiny_scene.cameras[[0]]
     out = field.train().render(cams, Window.full(cams))
     out.rgb.mean().backward()
@@ -247,8 +247,8 @@ def test_l1_ssim_loss_and_authors_split():
     rendered = torch.rand(1, 3, 16, 16, generator=g, requires_grad=True)
     rain = (0.1 * torch.rand(1, 3, 16, 16, generator=g)).requires_grad_(True)
     target = torch.rand(1, 3, 16, 16, generator=g)
-    ctx = LossContext(rendered, target, rain, RenderOutput(rendered), torch.tensor([0]), 0, "joint")
-    plain = L1SSIM()(replace(ctx, rain=None))
+    ctx = LossContext(rendered, target, {"rain": rain}, RenderOutput(rendered), torch.tensor([0]), 0, "joint")
+    plain = L1SSIM()(replace(ctx, layers={}))
     assert plain.item() == pytest.approx(0.8 * (rendered - target).abs().mean().item()
                                          + 0.2 * (1 - _ssim(rendered, target)), rel=1e-6)
     both = L1SSIM(L1SSIM.Config(with_rain=True, render_l1=True))(ctx)
@@ -283,17 +283,18 @@ def _loss(cfg):
 def test_method_configs():
     plain = method_config("3dgs")
     assert plain.field.name == "gaussians" and plain.rain_head is None
-    assert plain.trainer.warmup_fraction == 1.0
+    assert list(plain.phases) == ["fit"]
     assert [(l.name, l.options.ssim_weight) for l in plain.losses.values()] == [("l1-ssim", 0.2)]
     rs = method_config("rainyscape-3dgs")
-    assert rs.trainer.warmup_fraction == pytest.approx(4000 / 30000)
+    assert rs.phases["warmup"].end == pytest.approx(4000 / 30000)
     assert rs.trainer.max_iters == plain.trainer.max_iters and rs.field == plain.field
     assert rs.losses["gaussians"].detach == "rain" and rs.losses["gaussians"].options.render_l1
     assert {rs.losses[k].detach for k in ("likelihood", "reconstruction", "agr")} == {"rendered"}
     assert rs.losses["photometric"].phases == ("warmup",)
     assert "rain-mask-fusion" in rs.postprocess
     # whole views in both phases, as 3dgs; latent updates on a 64 x 64 crop
-    assert (rs.trainer.joint_patch_size, rs.trainer.latent_patch_size) == (0, 64)
+    assert (rs.phases["warmup"].patch_size, rs.phases["joint"].patch_size) == (0, 0)
+    assert rs.phases["joint"].heads == ("rain_head",) and rs.rain_head.options.latent_patch_size == 64
 
 
 def _quiet_pipeline(method: str, scene, overrides: list[str]):
@@ -313,7 +314,7 @@ def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):
     from rainyscape.eval.evaluate import render_image
     from rainyscape.imaging.metrics import psnr
 
-    cfg, pipe = _quiet_pipeline("3dgs", tiny_scene, ["trainer.max_iters=200", "trainer.warmup_patch_size=0",
+    cfg, pipe = _quiet_pipeline("3dgs", tiny_scene, ["trainer.max_iters=200", "phases.fit.patch_size=0",
                                                      "field.init_points=3000", "field.max_gaussians=5000"])
     view = tiny_scene.eval_indices[0]
     clean = tiny_scene.clean_images[view].permute(2, 0, 1).float() / 255
@@ -339,8 +340,8 @@ def test_rainyscape_3dgs_trains_whole_views_and_updates_latents_on_a_crop(tiny_s
     still move the latents (of every view: the prior pulls them all)."""
     from rainyscape.engine.trainer import Trainer
 
-    _, pipe = _quiet_pipeline("rainyscape-3dgs", tiny_scene, ["trainer.max_iters=12", "trainer.warmup_fraction=0.25",
-                                                             "trainer.latent_patch_size=16", "field.init_points=500"])
+    _, pipe = _quiet_pipeline("rainyscape-3dgs", tiny_scene, ["trainer.max_iters=12", "phases.warmup.end=0.25",
+                                                             "rain_head.latent_patch_size=16", "field.init_points=500"])
     trainer = Trainer(pipe, tmp_path)
     seen = []
     predict = pipe.rain_head.forward

@@ -16,7 +16,7 @@ from rainyscape.testing.streaks import streak_layer, textured_background
 
 
 def _ctx(rendered, target, rain, view_ids=(0,)):
-    return LossContext(rendered, target, rain, RenderOutput(rgb=rendered),
+    return LossContext(rendered, target, {} if rain is None else {"rain": rain}, RenderOutput(rgb=rendered),
                        torch.tensor(view_ids), step=0, phase="joint")
 
 

@@ -22,7 +22,7 @@ MIN_GAIN_DB = 0.8
 @pytest.fixture(scope="module")
 def summaries(tmp_path_factory) -> dict[str, dict]:
     from rainyscape.config import method_config
-    from rainyscape.engine.run import train_run
+    from rainyscape.workflow import train_and_evaluate
     from rainyscape.synth import generate
 
     root = tmp_path_factory.mktemp("rain_e2e")
@@ -32,7 +32,7 @@ def summaries(tmp_path_factory) -> dict[str, dict]:
         cfg = method_config(method, [f"data={scene}", f"trainer.max_iters={ITERS}", f"field.lr_decay_steps={ITERS}",
                                      f"trainer.output_dir={root}", "trainer.device=cpu", "trainer.progress=false",
                                      "trainer.eval_every=0", "trainer.checkpoint_every=0"])
-        out[method] = json.loads((train_run(cfg).run_dir / "metrics.json").read_text())["summary"]
+        out[method] = json.loads((train_and_evaluate(cfg).run_dir / "metrics.json").read_text())["summary"]
     return out
 
 

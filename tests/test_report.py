@@ -43,7 +43,7 @@ def make_run(folder: Path) -> Path:
         phase = "warmup" if step <= 30 else "joint"
         terms = {"photometric": 1.0 / step} if phase == "warmup" else {"likelihood": 0.5 / step, "agr": 0.1}
         lines.append({"step": step, "phase": phase, "loss": sum(terms.values()), "terms": terms,
-                      "psnr_rainy": 15 + step / 10, "metrics": {"agr.angle_deg": 80.0} if phase == "joint" else {}})
+                      "psnr_input": 15 + step / 10, "metrics": {"agr.angle_deg": 80.0} if phase == "joint" else {}})
         if step % 20 == 0:
             lines.append({"step": step, "phase": phase, "eval": {"train_psnr_clean": 18 + step / 20,
                                                                  "train_psnr_rainy": 19 + step / 10}})

@@ -26,7 +26,7 @@ def _outlier_image(seed: int = 0):
 
 
 def _ctx(rendered, target, step=0):
-    return LossContext(rendered, target, None, RenderOutput(rendered), torch.zeros(1, dtype=torch.long),
+    return LossContext(rendered, target, {}, RenderOutput(rendered), torch.zeros(1, dtype=torch.long),
                        step, "warmup")
 
 

@@ -11,8 +11,8 @@ from rainyscape import config
 from rainyscape.engine.checkpoint import latest_checkpoint
 
 
-def _rays(t) -> int:
-    return t.warmup_patches * max(t.warmup_patch_size, 1) ** 2
+def _rays(phase) -> int:
+    return phase.patches * max(phase.patch_size, 1) ** 2
 
 
 def test_robust_nerf_is_nerf_with_the_trimmed_loss():
@@ -20,9 +20,9 @@ def test_robust_nerf_is_nerf_with_the_trimmed_loss():
     assert robust.field == base.field and robust.dataparser == base.dataparser
     assert robust.rain_head is None and robust.postprocess == {}
     assert list(robust.losses) == ["robust"] and robust.losses["robust"].options.residual == "l2"
-    t, b = robust.trainer, base.trainer
-    assert t.max_iters == b.max_iters and t.warmup_fraction == 1.0
-    assert t.warmup_patch_size >= 16 and _rays(t) == _rays(b)  # patches, same rays per step
+    t, b = robust.phases["fit"], base.phases["fit"]
+    assert robust.trainer.max_iters == base.trainer.max_iters and list(robust.phases) == ["fit"]
+    assert t.patch_size >= 16 and _rays(t) == _rays(b)  # patches, same rays per step
 
 
 def test_robust_3dgs_is_3dgs_with_the_trimmed_l1_dssim_loss():
@@ -30,19 +30,19 @@ def test_robust_3dgs_is_3dgs_with_the_trimmed_l1_dssim_loss():
     assert robust.field == base.field and robust.rain_head is None
     opts = robust.losses["robust"].options
     assert opts.residual == "l1" and 0 < opts.ssim_weight < 1
-    assert robust.trainer.max_iters == base.trainer.max_iters and robust.trainer.warmup_fraction == 1.0
-    size = robust.trainer.warmup_patch_size
+    assert robust.trainer.max_iters == base.trainer.max_iters and list(robust.phases) == ["fit"]
+    size = robust.phases["fit"].patch_size
     assert size == 0 or size >= 16
 
 
 def test_robust_nerf_trains_and_checkpoints_its_threshold(tmp_path, tiny_scene_dir):
-    from rainyscape.engine.run import train_run
+    from rainyscape.workflow import train_and_evaluate
 
     cfg = config.method_config("robust-nerf", [f"data={tiny_scene_dir}", "trainer.max_iters=6",
                                                f"trainer.output_dir={tmp_path}", "trainer.device=cpu",
                                                "trainer.progress=false", "trainer.log_every=1",
                                                "trainer.eval_every=0"])
-    run = train_run(cfg).run_dir
+    run = train_and_evaluate(cfg).run_dir
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     fractions = [r["metrics"]["robust.inlier_fraction"] for r in records if "metrics" in r]
     assert len(fractions) == 6 and all(0.5 < f <= 1.0 for f in fractions)

@@ -92,9 +92,9 @@ def _resume(run_dir: str, overrides: list[str]) -> int:
 
 
 def _run(cfg, run_dir) -> int:
-    from rainyscape.engine.run import train_run
+    from rainyscape.workflow import train_and_evaluate
 
-    result = train_run(cfg, run_dir)
+    result = train_and_evaluate(cfg, run_dir)
     print(f"run folder: {result.run_dir}")
     if result.metrics:
         for key, value in result.metrics.get("summary", {}).items():

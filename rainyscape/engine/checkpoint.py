@@ -43,10 +43,16 @@ def save_checkpoint(folder: Path, step: int, state: dict, keep: int) -> Path:
 
 
 def load_checkpoint(path: Path, device) -> dict:
+    """A checkpoint's tensors and plain values; never runs code from the file (weights_only)."""
     try:
-        return torch.load(path, map_location=device, weights_only=False)
+        state = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:
-        raise RainyScapeError(f"{path}: cannot read checkpoint ({type(exc).__name__}: {exc})") from None
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise RainyScapeError(f"{path}: not a readable RainyScape checkpoint ({reason})") from None
+    if not isinstance(state, dict) or not {"step", "models", "optimizers", "rng"} <= set(state):
+        raise RainyScapeError(f"{path}: not a RainyScape checkpoint (missing its step, models, "
+                              "optimizers or RNG state)")
+    return state
 
 
 def latest_checkpoint(folder: Path) -> Path | None:

@@ -1,4 +1,4 @@
-"""Assemble a pipeline from its config: scene, field, rain head, loss terms, post-processes."""
+"""Assemble a pipeline from its typed config: scene, field, heads, loss terms, post-processes."""
 
 from __future__ import annotations
 
@@ -9,9 +9,10 @@ import torch
 from torch import Tensor
 
 from rainyscape import registry
-from rainyscape.components import (DataParser, Field, Loss, LossContext, PostProcess,
-                                   RainHead)
-from rainyscape.config import LossConfig, PipelineConfig, materialize
+from rainyscape.components import DataParser, Field, ImageHead, Loss, LossContext, PostProcess
+from rainyscape.config import LossConfig, PipelineConfig
+from rainyscape.config.schema import is_materialized
+from rainyscape.engine.phases import PhaseSchedule
 from rainyscape.errors import ConfigError, DataError
 from rainyscape.scene import SceneData
 
@@ -21,10 +22,18 @@ class Pipeline:
     config: PipelineConfig
     scene: SceneData
     field: Field
-    rain_head: RainHead | None
+    heads: dict[str, ImageHead]  # by config key (e.g. "rain_head")
     losses: dict[str, tuple[LossConfig, Loss]]
     postprocess: dict[str, PostProcess]
     device: torch.device
+
+    @property
+    def rain_head(self) -> ImageHead | None:
+        return self.heads.get("rain_head")
+
+    def models(self) -> dict[str, torch.nn.Module]:
+        """Everything with trainable parameters: the field first, then the heads."""
+        return {"field": self.field, **self.heads}
 
     def loss_terms(self, phase: str) -> dict[str, tuple[LossConfig, Loss]]:
         return {k: v for k, v in self.losses.items() if phase in v[0].phases and v[0].weight != 0}
@@ -33,64 +42,72 @@ class Pipeline:
 def resolve_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(name)
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"trainer.device={name}: not a device (auto, cpu, cuda or cuda:N)") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError(f"trainer.device={name}, but CUDA is not available here")
+    if dev.type not in ("cpu", "cuda"):
+        raise ConfigError(f"trainer.device={name}: only cpu and cuda are supported")
     return dev
 
 
-def resolve_data_path(config: PipelineConfig) -> Path:
-    """The scene folder: ``data=`` or, when empty, the embedded demo scene (made once, cached)."""
-    if config.data:
-        path = Path(config.data).expanduser()
-        if not path.exists():
-            raise DataError(f"{path}: no such scene folder (data=)")
-        return path
-    from rainyscape.synth.demo import ensure_demo_scene
-
-    return ensure_demo_scene()
-
-
-def load_scene(config: PipelineConfig) -> SceneData:
-    config = materialize(config)
+def load_scene(config: PipelineConfig, path: Path) -> SceneData:
+    """Parse the scene folder ``path`` with the config's dataparser."""
+    _require_typed(config)
+    if not Path(path).exists():
+        raise DataError(f"{path}: no such scene folder (data=)")
     parser_cls = registry.load("dataparser", config.dataparser.name)
     parser: DataParser = parser_cls(config.dataparser.options)
-    return parser.parse(resolve_data_path(config))
+    return parser.parse(Path(path))
 
 
 def build_pipeline(config: PipelineConfig, scene: SceneData, device: torch.device) -> Pipeline:
-    config = materialize(config)
+    _require_typed(config)
     field_cls = registry.load("field", config.field.name)
     field: Field = field_cls(config.field.options, scene).to(device)
-    rain_head = None
-    if config.rain_head is not None:
-        head_cls = registry.load("rain_head", config.rain_head.name)
-        rain_head = head_cls(config.rain_head.options, scene).to(device)
-    losses = {}
-    for key, loss_cfg in config.losses.items():
-        losses[key] = (loss_cfg, registry.load("loss", loss_cfg.name)(loss_cfg.options))
-    if rain_head is None:
-        needs_rain = [k for k, (c, _) in losses.items() if "joint" in c.phases and c.weight != 0
-                      and config.trainer.warmup_fraction < 1.0]
-        if needs_rain:
-            raise ConfigError(
-                f"losses {', '.join(needs_rain)} run in the joint phase, which needs a rain head; "
-                "set rain_head=NAME or trainer.warmup_fraction=1")
+    heads = {key: registry.load("rain_head", comp.name)(comp.options, scene).to(device)
+             for key, comp in config.heads().items()}
+    losses = {key: (cfg, registry.load("loss", cfg.name)(cfg.options)) for key, cfg in config.losses.items()}
+    _check_layers(config, heads, losses)
     post = {k: registry.load("postprocess", p.name)(p.options) for k, p in config.postprocess.items()}
-    return Pipeline(config, scene, field, rain_head, losses, post, device)
+    return Pipeline(config, scene, field, heads, losses, post, device)
+
+
+def _require_typed(config: PipelineConfig) -> None:
+    if not is_materialized(config):
+        raise TypeError("the pipeline needs a typed config (from method_config or load_yaml)")
+
+
+def _check_layers(config: PipelineConfig, heads: dict[str, ImageHead],
+                  losses: dict[str, tuple[LossConfig, Loss]]) -> None:
+    """Every loss term must have, in each phase it acts in, the image layers it needs."""
+    schedule = PhaseSchedule.of(config.phases, config.trainer.max_iters)
+    for name, phase in config.phases.items():
+        if schedule.length(name) == 0:
+            continue
+        layers = {heads[h].layer for h in phase.heads}
+        for key, (cfg, term) in losses.items():
+            missing = [n for n in term.needs if n not in layers] if name in cfg.phases and cfg.weight else []
+            if missing:
+                raise ConfigError(
+                    f"losses.{key} needs the '{missing[0]}' layer in phase '{name}', and no head "
+                    f"predicts it there; set rain_head=NAME and phases.{name}.heads, or drop the term "
+                    f"(losses.{key}=none)")
 
 
 def compute_losses(terms: dict[str, tuple[LossConfig, Loss]], ctx: LossContext
                    ) -> tuple[Tensor, dict[str, float]]:
-    """Weighted sum of the loss terms; each term may stop gradients into B or R."""
+    """Weighted sum of the loss terms; each term may stop gradients into B or a layer."""
     total = torch.zeros((), device=ctx.rendered.device)
     values: dict[str, float] = {}
     for key, (cfg, term) in terms.items():
         c = ctx
         if cfg.detach == "rendered":
             c = replace(ctx, rendered=ctx.rendered.detach())
-        elif cfg.detach == "rain" and ctx.rain is not None:
-            c = replace(ctx, rain=ctx.rain.detach())
+        elif cfg.detach in ctx.layers:
+            c = replace(ctx, layers={**ctx.layers, cfg.detach: ctx.layers[cfg.detach].detach()})
         value = term(c)
         total = total + cfg.weight * value
         values[key] = float(value.detach())

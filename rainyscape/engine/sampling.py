@@ -2,13 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import torch
 from torch import Tensor
 
 from rainyscape.cameras import Window
-from rainyscape.components import LossContext
 
 
 def sample_windows(pool: Tensor, count: int, size: int, width: int, height: int,
@@ -33,17 +30,3 @@ def gather_pixels(images: Tensor, view_ids: Tensor, window: Window) -> Tensor:
     xs, ys = window.pixel_grid(images.device)
     picked = images[view_ids.to(images.device)[:, None, None], ys, xs]  # (B, h, w, 3)
     return picked.permute(0, 3, 1, 2).float() / 255.0
-
-
-def crop_batch(window: Window, ctx: LossContext, size: int, generator: torch.Generator
-               ) -> tuple[Window, LossContext]:
-    """A random ``size`` x ``size`` sub-window of each batch window, with the images of
-    ``ctx`` (rendered, target, rain) cut to it; the window's offsets stay image-absolute."""
-    w, h = min(size, window.width), min(size, window.height)
-    count = len(window)
-    dx = torch.randint(window.width - w + 1, (count,), generator=generator)
-    dy = torch.randint(window.height - h + 1, (count,), generator=generator)
-    local = Window(dx, dy, w, h)
-    rain = None if ctx.rain is None else local.crop(ctx.rain)
-    sub = Window(window.x0 + dx, window.y0 + dy, w, h)
-    return sub, replace(ctx, rendered=local.crop(ctx.rendered), target=local.crop(ctx.target), rain=rain)

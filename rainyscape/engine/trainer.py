@@ -1,7 +1,8 @@
-"""The training loop: warm-up, joint network + latent updates, callbacks, checkpoints.
+"""The training loop: the method's phases, one optimiser per parameter group, callbacks,
+latent updates of the heads that have latents, checkpoints.
 
-The trainer sees a field, an optional rain head and loss terms only through their
-interfaces (:mod:`rainyscape.components`); it never knows what kind of field it trains.
+The trainer sees the field, the image-layer heads and the loss terms only through their
+interfaces (:mod:`rainyscape.components`); what acts in a phase is the method's config.
 """
 
 from __future__ import annotations
@@ -12,25 +13,23 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from rainyscape.cameras import Window
-from rainyscape.components import LossContext, ParamGroup, RenderOutput, TrainState
+from rainyscape.components import Energy, LatentModel, LossContext, ParamGroup, TrainState
+from rainyscape.config import PhaseConfig
+from rainyscape.engine import snapshot
 from rainyscape.engine.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from rainyscape.engine.phases import PhaseSchedule
 from rainyscape.engine.pipeline import Pipeline, compute_losses
-from rainyscape.engine.sampling import crop_batch, gather_pixels, sample_windows
+from rainyscape.engine.progress import ProgressBar
+from rainyscape.engine.sampling import gather_pixels, sample_windows
+from rainyscape.errors import DataError
 from rainyscape.imaging.metrics import psnr
-from rainyscape.rain.langevin import langevin_step
-
-
-def group_lr(group: ParamGroup, step: int, phase: str) -> float:
-    if phase == "joint" and group.lr_joint is not None:
-        return group.lr_joint
-    if group.lr_decay_steps > 0:
-        return group.lr * group.lr_decay ** (step / group.lr_decay_steps)
-    return group.lr
 
 
 def seed_everything(seed: int) -> None:
@@ -40,7 +39,10 @@ def seed_everything(seed: int) -> None:
 
 
 class Trainer:
-    def __init__(self, pipeline: Pipeline, run_dir: Path):
+    """Trains a pipeline in a run folder. ``evaluate`` (optional) is called every
+    ``trainer.eval_every`` steps and its numbers go to the log and the progress line."""
+
+    def __init__(self, pipeline: Pipeline, run_dir: Path, evaluate: Callable[[], dict] | None = None):
         self.p = pipeline
         self.cfg = pipeline.config.trainer
         self.run_dir = Path(run_dir)
@@ -50,71 +52,73 @@ class Trainer:
         self.cameras = self.scene.cameras.to(self.device)
         self.train_pool = torch.tensor(self.scene.train_indices, dtype=torch.long)
         if len(self.train_pool) == 0:
-            raise ValueError(f"scene {self.scene.name} has no training views")
-        self.warmup_iters = int(round(self.cfg.max_iters * self.cfg.warmup_fraction))
+            raise DataError(f"scene {self.scene.name} has no training views")
+        self.phases = PhaseSchedule.of(pipeline.config.phases, self.cfg.max_iters)
         self.generator = torch.Generator().manual_seed(self.cfg.seed)
+        self.evaluate = evaluate
         self.step = 0
-        self.groups: list[ParamGroup] = list(self.p.field.param_groups())
-        if self.p.rain_head is not None:
-            self.groups += self.p.rain_head.param_groups()
+        self.groups = self._param_groups()
         self.optimizers = self._make_optimizers()
         self.callbacks = list(self.p.field.callbacks())
         self.log_path = self.run_dir / "log.jsonl"
 
     # ------------------------------------------------------------------ set-up
 
+    def _param_groups(self) -> dict[str, list[ParamGroup]]:
+        """Each model's parameter groups, by pipeline key."""
+        return {key: list(model.param_groups()) for key, model in self.p.models().items()}
+
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        names = [g.name for g in self.groups]
+        groups = [g for gs in self.groups.values() for g in gs]
+        names = [g.name for g in groups]
         if len(set(names)) != len(names):
             raise ValueError(f"parameter group names must be unique, got {names}")
-        # fused: one kernel per group instead of one per tensor (5x faster on 50k Gaussians)
+        # fused: one kernel per group instead of one per tensor (5x faster with 50k-row tensors)
         return {g.name: torch.optim.Adam(g.params, lr=g.lr, betas=g.betas, eps=g.eps, fused=True)
-                for g in self.groups}
-
-    def phase_at(self, step: int) -> str:
-        return "warmup" if step < self.warmup_iters else "joint"
+                for g in groups}
 
     def state(self, phase: str) -> TrainState:
-        return TrainState(self.step, self.cfg.max_iters, self.warmup_iters, phase,
-                          self.optimizers, self.device)
+        return TrainState(self.step, self.cfg.max_iters, phase, self.optimizers, self.device)
 
-    def _set_lrs(self, phase: str) -> None:
-        for g in self.groups:
-            lr = group_lr(g, self.step, phase)
-            for pg in self.optimizers[g.name].param_groups:
-                pg["lr"] = lr
+    def _set_lrs(self, phase: PhaseConfig) -> None:
+        for key, groups in self.groups.items():
+            for g in groups:
+                lr = g.lr_at(self.step, self.cfg.max_iters)
+                if key == "field":
+                    lr = phase.field_lr if phase.field_lr is not None else lr * phase.field_lr_scale
+                for pg in self.optimizers[g.name].param_groups:
+                    pg["lr"] = lr
 
     # ------------------------------------------------------------------- steps
 
-    def _batch(self, phase: str):
-        if phase == "warmup":
-            count, size = self.cfg.warmup_patches, self.cfg.warmup_patch_size
-        else:
-            count, size = self.cfg.joint_patches, self.cfg.joint_patch_size
-        view_ids, window = sample_windows(self.train_pool, count, size, self.scene.width,
-                                          self.scene.height, self.generator)
+    def _batch(self, phase: PhaseConfig):
+        view_ids, window = sample_windows(self.train_pool, phase.patches, phase.patch_size,
+                                          self.scene.width, self.scene.height, self.generator)
         target = gather_pixels(self.images, view_ids.to(self.device), window)
         return view_ids, window, target
 
     def train_step(self) -> dict:
-        phase = self.phase_at(self.step)
-        state = self.state(phase)
+        name, phase = self.phases.at(self.step)
+        state = self.state(name)
         self._set_lrs(phase)
         for cb in self.callbacks:
             cb.before_step(state)
         view_ids, window, target = self._batch(phase)
         self.p.field.train()
         out = self.p.field.render(self.cameras[view_ids], window)
-        rain = None
-        if phase == "joint" and self.p.rain_head is not None:
-            self.p.rain_head.train()
-            rain = self.p.rain_head(view_ids.to(self.device), window)
-        ctx = LossContext(out.rgb, target, rain, out, view_ids, self.step, phase)
-        total, terms = compute_losses(self.p.loss_terms(phase), ctx)
-        field_target = target if rain is None else (target - rain).detach()
-        for name, value in self.p.field.extra_losses(out, field_target).items():
+        heads = [self.p.heads[key] for key in phase.heads]
+        layers: dict[str, Tensor] = {}
+        for head in heads:
+            head.train()
+            layers[head.layer] = head(view_ids.to(self.device), window)
+        ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name)
+        terms = self.p.loss_terms(name)
+        total, values = compute_losses(terms, ctx)
+        # the field's own losses fit what the layers leave of the input
+        field_target = target if not layers else (target - sum(layers.values())).detach()
+        for key, value in self.p.field.extra_losses(out, field_target).items():
             total = total + value
-            terms[f"field.{name}"] = float(value.detach())
+            values[f"field.{key}"] = float(value.detach())
         for opt in self.optimizers.values():
             opt.zero_grad(set_to_none=True)
         total.backward()
@@ -122,120 +126,59 @@ class Trainer:
             cb.after_backward(state, out)
         for opt in self.optimizers.values():
             opt.step()
-        if rain is not None:
-            self._latent_update(ctx, view_ids, window)
+        for head in heads:
+            if isinstance(head, LatentModel):
+                energy = self._energy(ctx, window, head.layer, terms)
+                head.update_latents(view_ids.to(self.device), window, energy, self.generator)
         for cb in self.callbacks:
             cb.after_step(state)
         self.step += 1
-        recon = out.rgb.detach() if rain is None else out.rgb.detach() + rain.detach()
-        record = {"step": self.step, "phase": phase, "loss": float(total.detach()), "terms": terms,
-                  "psnr_rainy": float(psnr(recon.clamp(0, 1), target))}
-        for key, (_, term) in self.p.loss_terms(phase).items():
+        fit = out.rgb.detach() + sum(v.detach() for v in layers.values())
+        record = {"step": self.step, "phase": name, "loss": float(total.detach()), "terms": values,
+                  "psnr_input": float(psnr(fit.clamp(0, 1), target))}
+        for key, (_, term) in terms.items():
             for mk, mv in term.metrics.items():
                 record.setdefault("metrics", {})[f"{key}.{mk}"] = mv
         return record
 
-    def _latent_update(self, ctx: LossContext, view_ids, window: Window) -> None:
-        latents = self.p.rain_head.latents()
-        if not latents or self.cfg.latent_steps <= 0:
-            return
-        ctx = replace(ctx, rendered=ctx.rendered.detach())
-        size = self.cfg.latent_patch_size
-        if 0 < size < max(window.width, window.height):
-            # A whole-view step (3DGS) would make each latent step a whole-view rain-head
-            # pass; a crop of the same view and residual gives the latents the same signal.
-            window, ctx = crop_batch(window, ctx, size, self.generator)
-        terms = self.p.loss_terms("joint")
-        for k in range(self.cfg.latent_steps):
-            rain = self.p.rain_head(view_ids.to(self.device), window)
-            energy, _ = compute_losses(terms, replace(ctx, rain=rain))
-            grads = torch.autograd.grad(energy, latents, allow_unused=True)
-            langevin_step(latents, list(grads), self.cfg.langevin_step, self.cfg.langevin_prior_var,
-                          noise=k < self.cfg.langevin_noise_steps, generator=self.generator)
+    def _energy(self, ctx: LossContext, window: Window, layer: str, terms) -> Energy:
+        """The phase's loss as a function of one layer's prediction on a sub-window, with the
+        render (detached) and the other layers held at this step's values."""
+        base = replace(ctx, rendered=ctx.rendered.detach())
 
-    # -------------------------------------------------------------- evaluation
+        def energy(sub: Window, prediction: Tensor) -> Tensor:
+            c = base
+            if (sub.width, sub.height) != (window.width, window.height):
+                local = sub.relative_to(window)
+                c = replace(base, rendered=local.crop(base.rendered), target=local.crop(base.target),
+                            layers={k: local.crop(v) for k, v in base.layers.items()})
+            c = replace(c, layers={**c.layers, layer: prediction})
+            return compute_losses(terms, c)[0]
 
-    @torch.no_grad()
-    def render_view(self, index: int) -> RenderOutput:
-        self.p.field.eval()
-        cams = self.cameras[[index]]
-        return self.p.field.render(cams, Window.full(cams))
-
-    @torch.no_grad()
-    def quick_eval(self) -> dict:
-        """PSNR of a few training and held-out renders vs clean and rainy images (Fig. 2)."""
-        out: dict[str, float] = {}
-        sets = {"train": self.scene.train_indices, "heldout": self.scene.eval_indices}
-        for split, indices in sets.items():
-            picked = indices[: self.cfg.eval_views]
-            if not picked:
-                continue
-            clean_vals, rainy_vals = [], []
-            for i in picked:
-                rgb = self.render_view(i).rgb.clamp(0, 1)
-                rainy = self.images[i].permute(2, 0, 1)[None].float() / 255
-                rainy_vals.append(float(psnr(rgb, rainy)))
-                if self.scene.clean_images is not None:
-                    clean = self.scene.clean_images[i].to(self.device).permute(2, 0, 1)[None].float() / 255
-                    clean_vals.append(float(psnr(rgb, clean)))
-            out[f"{split}_psnr_rainy"] = sum(rainy_vals) / len(rainy_vals)
-            if clean_vals:
-                out[f"{split}_psnr_clean"] = sum(clean_vals) / len(clean_vals)
-        return out
+        return energy
 
     # ------------------------------------------------------------- checkpoints
 
-    def checkpoint_state(self) -> dict:
-        state = {
-            "step": self.step,
-            "field": self.p.field.state_dict(),
-            "rain_head": None if self.p.rain_head is None else self.p.rain_head.state_dict(),
-            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
-            "losses": {k: t.state_dict() for k, (_, t) in self.p.losses.items()},
-            "callbacks": [cb.state_dict() for cb in self.callbacks],
-            "rng": {
-                "sampler": self.generator.get_state(),
-                "torch": torch.get_rng_state(),
-                "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
-                "numpy": np.random.get_state(),
-                "python": random.getstate(),
-            },
-        }
-        return state
+    def _parts(self) -> snapshot.TrainingParts:
+        return snapshot.TrainingParts(self.p.models(), self.optimizers,
+                                      {k: t for k, (_, t) in self.p.losses.items()},
+                                      self.callbacks, self.generator)
 
     def save(self) -> Path:
-        return save_checkpoint(self.run_dir / "checkpoints", self.step, self.checkpoint_state(),
-                               self.cfg.keep_checkpoints)
+        return save_checkpoint(self.run_dir / "checkpoints", self.step,
+                               snapshot.capture(self.step, self._parts()), self.cfg.keep_checkpoints)
 
     def load(self, path: Path | None = None) -> None:
         path = path or latest_checkpoint(self.run_dir / "checkpoints")
         if path is None:
-            raise FileNotFoundError(f"{self.run_dir}: no checkpoint to resume from")
+            raise DataError(f"{self.run_dir}: no checkpoint to resume from")
         state = load_checkpoint(path, self.device)
         self.step = int(state["step"])
-        self.p.field.load_state_dict(state["field"])
-        if self.p.rain_head is not None and state.get("rain_head") is not None:
-            self.p.rain_head.load_state_dict(state["rain_head"])
-        # Fields may change their parameter set (Gaussians): rebuild optimisers, then load.
-        self.groups = list(self.p.field.param_groups())
-        if self.p.rain_head is not None:
-            self.groups += self.p.rain_head.param_groups()
+        snapshot.restore_models(state, self.p.models())
+        # Fields may change their parameter set (densification): rebuild optimisers, then load.
+        self.groups = self._param_groups()
         self.optimizers = self._make_optimizers()
-        for k, opt in self.optimizers.items():
-            if k in state["optimizers"]:
-                opt.load_state_dict(state["optimizers"][k])
-        for k, (_, term) in self.p.losses.items():
-            if k in state.get("losses", {}):
-                term.load_state_dict(state["losses"][k])
-        for cb, cb_state in zip(self.callbacks, state.get("callbacks", [])):
-            cb.load_state_dict(cb_state)
-        rng = state["rng"]
-        self.generator.set_state(rng["sampler"].cpu())
-        torch.set_rng_state(rng["torch"].cpu())
-        if rng.get("cuda") is not None and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
-        np.random.set_state(rng["numpy"])
-        random.setstate(rng["python"])
+        snapshot.restore_rest(state, self._parts())
 
     # -------------------------------------------------------------------- loop
 
@@ -244,14 +187,13 @@ class Trainer:
             fh.write(json.dumps(record) + "\n")
 
     def train(self) -> None:
-        stop = self.cfg.stop_at or self.cfg.max_iters
-        stop = min(stop, self.cfg.max_iters)
-        progress = _Progress(self.step, stop, enabled=self.cfg.progress)
-        last_phase = None if self.step == 0 else self.phase_at(self.step - 1)
+        stop = min(self.cfg.stop_at or self.cfg.max_iters, self.cfg.max_iters)
+        progress = ProgressBar(self.step, stop, enabled=self.cfg.progress)
+        last_phase = None if self.step == 0 else self.phases.at(self.step - 1)[0]
         t0 = time.time()
         try:
             while self.step < stop:
-                phase = self.phase_at(self.step)
+                phase = self.phases.at(self.step)[0]
                 if phase != last_phase:
                     for cb in self.callbacks:
                         cb.on_phase_start(self.state(phase))
@@ -260,8 +202,9 @@ class Trainer:
                 record["time"] = round(time.time() - t0, 3)
                 if self.step % self.cfg.log_every == 0 or self.step == stop:
                     self._log(record)
-                if self.cfg.eval_every and (self.step % self.cfg.eval_every == 0 or self.step == stop):
-                    ev = self.quick_eval()
+                if (self.evaluate is not None and self.cfg.eval_every
+                        and (self.step % self.cfg.eval_every == 0 or self.step == stop)):
+                    ev = self.evaluate()
                     self._log({"step": self.step, "phase": phase, "eval": ev})
                     progress.eval = ev
                 progress.update(self.step, record)
@@ -278,35 +221,4 @@ class Trainer:
             self.save()
         if self.step >= self.cfg.max_iters:
             for cb in self.callbacks:
-                cb.after_training(self.state(self.phase_at(self.step - 1)))
-
-
-class _Progress:
-    """One console line: step, phase, loss, PSNR, it/s, time left (tqdm)."""
-
-    def __init__(self, start: int, stop: int, enabled: bool):
-        self.eval: dict = {}
-        self.bar = None
-        if enabled:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=stop, initial=start, dynamic_ncols=True, unit="it",
-                            file=sys.stderr, mininterval=0.5)
-        self.last = start
-
-    def update(self, step: int, record: dict) -> None:
-        if self.bar is None:
-            return
-        self.bar.update(step - self.last)
-        self.last = step
-        post = {"phase": record["phase"], "loss": f"{record['loss']:.4f}",
-                "psnr(rainy)": f"{record['psnr_rainy']:.2f}"}
-        for k, v in self.eval.items():
-            if k.endswith("psnr_clean"):
-                post[k.replace("_psnr_clean", " psnr(clean)")] = f"{v:.2f}"
-        self.bar.set_postfix(post, refresh=False)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
+                cb.after_training(self.state(self.phases.at(self.step - 1)[0]))

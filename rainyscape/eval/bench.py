@@ -155,7 +155,7 @@ def training_seconds(run_dir: Path) -> float | None:
 def run_cell_here(spec: dict) -> dict:
     """Train (or resume, or just read back) one cell in this process; returns its result."""
     from rainyscape.config import method_config
-    from rainyscape.engine.run import train_run
+    from rainyscape.workflow import train_and_evaluate
 
     output_dir = Path(spec["output_dir"])
     cfg = method_config(spec["method"], spec["overrides"] + [f"trainer.output_dir={output_dir}"])
@@ -170,7 +170,7 @@ def run_cell_here(spec: dict) -> dict:
         from rainyscape.engine.checkpoint import latest_checkpoint
 
         resume = existing if existing is not None and latest_checkpoint(existing / "checkpoints") else None
-        run_dir = train_run(cfg, resume).run_dir
+        run_dir = train_and_evaluate(cfg, resume).run_dir
         resumed = "resumed" if resume is not None else "trained"
     metrics = json.loads((run_dir / "metrics.json").read_text())
     return {"status": "finished", "how": resumed, "run_dir": str(run_dir),

@@ -102,7 +102,7 @@ def psnr_plot(train: list[dict], evals: list[dict]) -> str | None:
     for key, pts in sorted(series.items()):
         style = "-" if key.endswith("clean") else "--"
         ax.plot(*zip(*pts), style, marker="o", ms=3, label=names.get(key, key))
-    batch = [(r["step"], r["psnr_rainy"]) for r in train if "psnr_rainy" in r]
+    batch = [(r["step"], r["psnr_input"]) for r in train if "psnr_input" in r]
     if batch:
         ax.plot(*zip(*batch), color="grey", alpha=0.5, lw=0.8, label="batch: B (+R) vs rainy")
     _mark_phases(ax, train)

@@ -107,7 +107,6 @@ class GridField(RayField):
         lr_network: float = 1e-3
         lr_decay: float = 0.1  # every lr x lr_decay per lr_decay_steps (exponentially)
         lr_decay_steps: int = 3000
-        lr_joint_factor: float | None = None  # after the warm-up every lr x this (None: keep the schedule)
         chunk: int = 8192  # rays per chunk when rendering without gradients
         train_chunk: int = 0  # rays per gradient-checkpointed chunk in training (0: one pass)
 
@@ -226,11 +225,10 @@ class GridField(RayField):
         network = list(self.basis.parameters()) + list(self.color_net.parameters())
 
         def group(name: str, params: list, lr: float) -> ParamGroup:
-            joint = None if c.lr_joint_factor is None else lr * c.lr_joint_factor
             # A tiny eps (as instant-ngp): grid gradients are tiny where rays barely reach,
             # and Adam's default 1e-8 would freeze those voxels instead of normalising them.
             return ParamGroup(name, params, lr=lr, lr_decay=c.lr_decay,
-                              lr_decay_steps=c.lr_decay_steps, lr_joint=joint, eps=1e-15)
+                              lr_decay_steps=c.lr_decay_steps, eps=1e-15)
 
         return [group(DENSITY_GROUP, self.density_grid.factors(), c.lr_density),
                 group(COLOR_GROUP, color, c.lr_color),

@@ -82,7 +82,6 @@ class NerfMLPField(RayField):
         lr: float = 5e-4
         lr_decay: float = 0.1  # nerf-pytorch: 10x decay every 250k steps
         lr_decay_steps: int = 250_000
-        lr_joint: float | None = 1e-6  # paper: NeRF's lr after the warm-up
         chunk: int = 4096  # rays per chunk when rendering without gradients
         train_chunk: int = 1024  # rays per gradient-checkpointed chunk in training (0: one pass)
 
@@ -112,7 +111,7 @@ class NerfMLPField(RayField):
     def param_groups(self) -> list[ParamGroup]:
         c = self.config
         return [ParamGroup("field", list(self.parameters()), lr=c.lr, lr_decay=c.lr_decay,
-                           lr_decay_steps=c.lr_decay_steps, lr_joint=c.lr_joint)]
+                           lr_decay_steps=c.lr_decay_steps)]
 
     def extra_losses(self, output, target: Tensor) -> dict[str, Tensor]:
         coarse = output.extras.get("rgb_coarse")

@@ -49,6 +49,8 @@ class AdaptiveGradientRotation(Loss):
     """Adaptive gradient rotation: rain varies across its estimated direction, the scene does not."""
 
     description = "agr: adaptive gradient rotation loss along the estimated rain direction(s)"
+    phases = ("joint",)
+    needs = ("rain",)
 
     @dataclass
     class Config:

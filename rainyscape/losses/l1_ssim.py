@@ -21,7 +21,7 @@ class L1SSIM(Loss):
     """(1 - w) L1 + w D-SSIM of the render (optionally render + rain) against the input."""
 
     description = "3DGS loss: 0.8 L1 + 0.2 D-SSIM vs the rainy input (optionally of B + R)"
-    phases = ("warmup", "joint")
+    phases = ()  # every phase of the method
 
     @dataclass
     class Config:

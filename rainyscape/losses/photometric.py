@@ -12,7 +12,7 @@ class Photometric(Loss):
     """Mean squared error of the render against the input image (NeRF's loss)."""
 
     description = "mean squared error of the render vs the rainy input (NeRF's loss)"
-    phases = ("warmup", "joint")
+    phases = ()  # every phase of the method
 
     def __call__(self, ctx: LossContext) -> Tensor:
         return F.mse_loss(ctx.rendered, ctx.target)

@@ -43,6 +43,8 @@ class Likelihood(Loss):
     """Likelihood of I given B + R: residual energy over its (detached) variance."""
 
     description = "likelihood: mean(r^2) / (var(r) + eps), r = I - B - R"
+    phases = ("joint",)
+    needs = ("rain",)
 
     @dataclass
     class Config:
@@ -59,6 +61,8 @@ class Reconstruction(Loss):
     """Reconstruction of the rainy input: mean((I - B - R)^2)."""
 
     description = "reconstruction: mean((I - B - R)^2)"
+    phases = ("joint",)
+    needs = ("rain",)
 
     @dataclass
     class Config:
@@ -75,6 +79,7 @@ class TotalVariation(Loss):
     """Anisotropic total variation of the rendered background B."""
 
     description = "tv: L1 total variation of the render B"
+    phases = ("joint",)
 
     @dataclass
     class Config:

@@ -66,7 +66,7 @@ class RobustPhotometric(Loss):
     """Trimmed photometric loss (RobustNeRF): ignores pixels the field cannot explain."""
 
     description = "RobustNeRF-style trimmed photometric loss (robust baseline)"
-    phases = ("warmup", "joint")
+    phases = ()  # every phase of the method
 
     @dataclass
     class Config:

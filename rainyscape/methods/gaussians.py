@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import copy
 
-from rainyscape.config import ComponentConfig, LossConfig, MethodSpec, PipelineConfig, TrainerConfig
+from rainyscape.config import (ComponentConfig, LossConfig, MethodSpec, PhaseConfig, PipelineConfig,
+                               TrainerConfig)
 from rainyscape.methods.rainyscape_nerf import PAPER_WEIGHTS
 
 GS_ITERS = 1500  # CPU-friendly run (the demo in about 10 minutes on 2 cores); the paper's is 30k (trainer.max_iters=30000)
@@ -35,15 +36,11 @@ gaussians_3dgs = MethodSpec(
         method="3dgs",
         dataparser=ComponentConfig("auto"),
         field=ComponentConfig("gaussians", dict(CPU_GAUSSIANS)),
-        losses={"photometric": LossConfig("l1-ssim", weight=1.0, phases=("warmup", "joint"),
+        phases={"fit": PhaseConfig(patches=1, patch_size=0)},  # one whole view per step, as 3DGS
+        losses={"photometric": LossConfig("l1-ssim", weight=1.0, phases=("fit",),
                                           options={"ssim_weight": 0.2})},
         trainer=TrainerConfig(
             max_iters=GS_ITERS,
-            warmup_fraction=1.0,
-            warmup_patches=1,  # one whole view per step, as 3DGS
-            warmup_patch_size=0,
-            joint_patches=1,
-            joint_patch_size=64,
             eval_every=500,
             checkpoint_every=1000,
         ),
@@ -54,7 +51,7 @@ gaussians_3dgs = MethodSpec(
 def _rainyscape_3dgs() -> PipelineConfig:
     cfg = copy.deepcopy(gaussians_3dgs.config)
     cfg.method = "rainyscape-3dgs"
-    cfg.rain_head = ComponentConfig("rain-predictor", dict(CPU_RAIN_HEAD))
+    cfg.rain_head = ComponentConfig("rain-predictor", {**CPU_RAIN_HEAD, "latent_patch_size": 64})
     w = PAPER_WEIGHTS
     cfg.losses = {
         "photometric": LossConfig("l1-ssim", weight=1.0, phases=("warmup",),
@@ -67,12 +64,10 @@ def _rainyscape_3dgs() -> PipelineConfig:
         "agr": LossConfig("agr", weight=w["agr"], detach="rendered"),
     }
     cfg.postprocess = {"rain-mask-fusion": ComponentConfig("rain-mask-fusion", {})}
-    cfg.trainer.warmup_fraction = PAPER_WARMUP
     # One whole view per joint step, as in the warm-up and `3dgs` (a 64 x 64 patch per step
     # left the Gaussians 2.5 dB behind `3dgs`); the latent updates use a 64 x 64 crop of it.
-    cfg.trainer.joint_patches = 1
-    cfg.trainer.joint_patch_size = 0
-    cfg.trainer.latent_patch_size = 64
+    cfg.phases = {"warmup": PhaseConfig(end=PAPER_WARMUP, patches=1, patch_size=0),
+                  "joint": PhaseConfig(patches=1, patch_size=0, heads=("rain_head",))}
     return cfg
 
 

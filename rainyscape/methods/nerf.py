@@ -3,17 +3,18 @@
 - ``nerf``: the fast grid field, a schedule that finishes in minutes on a CPU.
 - ``vanilla-nerf``: the paper's NeRF (nerf-pytorch's field and schedule; the paper's "NeRF" row).
 
-The whole run is one photometric phase (``trainer.warmup_fraction = 1``). Plain data only:
-this module imports no torch.
+The whole run is one photometric phase, ``fit``. Plain data only: this module imports no
+torch.
 """
 
 from __future__ import annotations
 
-from rainyscape.config import ComponentConfig, LossConfig, MethodSpec, PipelineConfig, TrainerConfig
+from rainyscape.config import (ComponentConfig, LossConfig, MethodSpec, PhaseConfig, PipelineConfig,
+                               TrainerConfig)
 
 
 def _photometric() -> dict[str, LossConfig]:
-    return {"photometric": LossConfig("photometric", weight=1.0, phases=("warmup", "joint"))}
+    return {"photometric": LossConfig("photometric", weight=1.0, phases=("fit",))}
 
 
 NERF_ITERS = 1500
@@ -25,12 +26,11 @@ nerf = MethodSpec(
         method="nerf",
         dataparser=ComponentConfig("auto"),
         field=ComponentConfig("grid", {"lr_decay_steps": NERF_ITERS}),
+        # random rays from all training views: more, cheaper steps on a CPU
+        phases={"fit": PhaseConfig(patches=1024, patch_size=1)},
         losses=_photometric(),
         trainer=TrainerConfig(
             max_iters=NERF_ITERS,
-            warmup_fraction=1.0,
-            warmup_patches=1024,  # random rays from all training views: more, cheaper steps on a CPU
-            warmup_patch_size=1,
             eval_every=250,
             checkpoint_every=500,
         ),
@@ -46,12 +46,10 @@ vanilla_nerf = MethodSpec(
         method="vanilla-nerf",
         dataparser=ComponentConfig("auto"),
         field=ComponentConfig("nerf-mlp", {}),
+        phases={"fit": PhaseConfig(patches=4096, patch_size=1)},  # nerf-pytorch: 4096 random rays
         losses=_photometric(),
         trainer=TrainerConfig(
             max_iters=VANILLA_ITERS,
-            warmup_fraction=1.0,
-            warmup_patches=4096,  # nerf-pytorch: 4096 random rays from all images per step
-            warmup_patch_size=1,
             eval_every=5000,
             checkpoint_every=10_000,
         ),

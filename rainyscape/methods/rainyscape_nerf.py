@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import copy
 
-from rainyscape.config import ComponentConfig, LossConfig, MethodSpec, PipelineConfig
+from rainyscape.config import ComponentConfig, LossConfig, MethodSpec, PhaseConfig, PipelineConfig
 from rainyscape.methods.nerf import nerf, vanilla_nerf
 
 # The paper's loss weights (likelihood, reconstruction, tv, agr).
@@ -31,19 +31,22 @@ def rain_losses(weights: dict[str, float], agr: dict | None = None) -> dict[str,
 
 
 def with_rain_module(base: MethodSpec, name: str, *, weights: dict[str, float],
-                     rain_head: dict, warmup_fraction: float, field: dict,
-                     agr: dict | None = None, fusion: dict | None = None) -> PipelineConfig:
-    """``base``'s config with the rain module added (its field options updated by ``field``)."""
+                     rain_head: dict, warmup_fraction: float,
+                     field_lr_joint: float | None = None, agr: dict | None = None,
+                     fusion: dict | None = None) -> PipelineConfig:
+    """``base``'s config with the rain module added: its one ``fit`` phase becomes the
+    warm-up (same batches) followed by the joint phase, in which the rain head predicts R
+    on one 64 x 64 patch per step (the paper)."""
     cfg = copy.deepcopy(base.config)
     cfg.method = name
-    cfg.field.options = {**dict(cfg.field.options), **field}
     cfg.rain_head = ComponentConfig("rain-predictor", dict(rain_head))
+    fit = cfg.phases["fit"]
+    cfg.phases = {
+        "warmup": PhaseConfig(end=warmup_fraction, patches=fit.patches, patch_size=fit.patch_size),
+        "joint": PhaseConfig(patches=1, patch_size=64, heads=("rain_head",), field_lr=field_lr_joint),
+    }
     cfg.losses = rain_losses(weights, agr)
     cfg.postprocess = {"rain-mask-fusion": ComponentConfig("rain-mask-fusion", dict(fusion or {}))}
-    t = cfg.trainer
-    t.warmup_fraction = warmup_fraction
-    t.joint_patches = 1  # the paper: one 64 x 64 patch (4096 rays) of one view per step
-    t.joint_patch_size = 64
     return cfg
 
 
@@ -55,7 +58,6 @@ rainyscape_nerf = MethodSpec(
         weights=PAPER_WEIGHTS,
         rain_head={"lowres_channels": (32, 32, 32, 32), "highres_channels": 16},
         warmup_fraction=0.5,
-        field={},
     ),
 )
 
@@ -67,6 +69,6 @@ rainyscape_vanilla_nerf = MethodSpec(
         weights=PAPER_WEIGHTS,
         rain_head={},  # the paper-scale predictor (Config defaults)
         warmup_fraction=0.5,
-        field={"lr_joint": 1e-6},
+        field_lr_joint=1e-6,  # the paper: NeRF nearly frozen after the warm-up
     ),
 )

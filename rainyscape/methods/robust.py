@@ -2,7 +2,7 @@
 
 Each is its plain counterpart (``nerf``, ``3dgs``) with the photometric loss replaced by
 the RobustNeRF-style trimmed loss (:mod:`rainyscape.losses.robust`) and no rain head:
-the whole run is one photometric phase (``trainer.warmup_fraction = 1``). Field options
+the whole run is one photometric phase, ``fit``. Field options
 and the schedule are taken from the counterpart, never copied, so the comparison stays fair
 when those change. Plain data only: this module imports no torch.
 """
@@ -20,15 +20,14 @@ from rainyscape.methods.nerf import nerf
 MIN_PATCH = 16
 
 
-def _patched_trainer(base: PipelineConfig) -> None:
+def _patched_phase(base: PipelineConfig) -> None:
     """Whole images stay whole; smaller patches (or single rays) grow to MIN_PATCH squares."""
-    t = base.trainer
-    t.warmup_fraction = 1.0
-    if t.warmup_patch_size == 0 or t.warmup_patch_size >= MIN_PATCH:
+    fit = base.phases["fit"]
+    if fit.patch_size == 0 or fit.patch_size >= MIN_PATCH:
         return
-    rays = t.warmup_patches * t.warmup_patch_size ** 2
-    t.warmup_patch_size = MIN_PATCH
-    t.warmup_patches = max(1, round(rays / MIN_PATCH ** 2))
+    rays = fit.patches * fit.patch_size ** 2
+    fit.patch_size = MIN_PATCH
+    fit.patches = max(1, round(rays / MIN_PATCH ** 2))
 
 
 def _robust_config(base: MethodSpec, name: str, residual: str, ssim_weight: float,
@@ -37,24 +36,24 @@ def _robust_config(base: MethodSpec, name: str, residual: str, ssim_weight: floa
     cfg.method = name
     cfg.rain_head = None
     cfg.postprocess = {}
-    cfg.losses = {"robust": LossConfig("robust", weight=weight, phases=("warmup", "joint"),
+    cfg.losses = {"robust": LossConfig("robust", weight=weight, phases=("fit",),
                                        options={"residual": residual, "ssim_weight": ssim_weight})}
-    _patched_trainer(cfg)
+    _patched_phase(cfg)
     return cfg
 
 
 def _photometric_weight(base: MethodSpec) -> float:
-    """The weight the counterpart gives its photometric term in the warm-up phase."""
-    weights = [loss.weight for loss in base.config.losses.values() if "warmup" in loss.phases]
+    """The weight the counterpart gives its photometric term."""
+    weights = [loss.weight for loss in base.config.losses.values() if "fit" in loss.phases]
     return weights[0] if len(weights) == 1 else 1.0
 
 
 def _dssim_fraction(base: MethodSpec) -> float:
-    """The D-SSIM share of the counterpart's warm-up loss (3DGS: 0.2), read from its options."""
+    """The D-SSIM share of the counterpart's loss (3DGS: 0.2), read from its recipe options."""
     for loss in base.config.losses.values():
-        if "warmup" not in loss.phases:
+        if "fit" not in loss.phases:
             continue
-        opts = loss.options if isinstance(loss.options, dict) else vars(loss.options)
+        opts = loss.options  # a recipe: plain dicts
         for key in ("ssim_weight", "lambda_dssim", "dssim_weight"):
             if key in opts:
                 return float(opts[key])

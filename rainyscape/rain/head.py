@@ -25,8 +25,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from rainyscape.cameras import Cameras, Window
-from rainyscape.components import ParamGroup, RainHead
+from rainyscape.components import Energy, ParamGroup, RainHead
 from rainyscape.errors import ConfigError
+from rainyscape.rain.langevin import langevin_update
 from rainyscape.scene import SceneData
 
 CAMERA_DIM = 16
@@ -71,6 +72,13 @@ class RainPredictor(RainHead):
         cnn_lr: float = 1e-4
         betas: tuple[float, float] = (0.5, 0.999)
         latent_std: float = 1.0  # s and v_i start as N(0, latent_std^2)
+        # Latent updates after each network update (Algorithm 1): x <- x - d^2/2 (grad E +
+        # x / prior_var) (+ d N(0, 1) on the first noise steps), networks frozen.
+        latent_steps: int = 5
+        latent_noise_steps: int = 2
+        langevin_step: float = 0.03  # d
+        langevin_prior_var: float = 50.0
+        latent_patch_size: int = 0  # latent steps on a random crop of the step's window (0: all of it)
 
     def __init__(self, config: "RainPredictor.Config | None", scene: SceneData):
         super().__init__()
@@ -121,6 +129,12 @@ class RainPredictor(RainHead):
 
     def latents(self) -> list[nn.Parameter]:
         return [self.scene_state, self.view_states]
+
+    def update_latents(self, view_ids: Tensor, window: Window, energy: Energy,
+                       generator: torch.Generator) -> None:
+        c = self.config
+        langevin_update(self.latents(), self, view_ids, window, energy, generator, c.latent_steps,
+                        c.latent_noise_steps, c.langevin_step, c.langevin_prior_var, c.latent_patch_size)
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config

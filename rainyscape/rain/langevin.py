@@ -5,6 +5,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from rainyscape.cameras import Window
+from rainyscape.components import Energy
+
 
 @torch.no_grad()
 def langevin_step(latents: list[Tensor], grads: list[Tensor | None], step: float,
@@ -21,3 +24,19 @@ def langevin_step(latents: list[Tensor], grads: list[Tensor | None], step: float
         if noise:
             n = torch.randn(x.shape, generator=generator, device="cpu", dtype=x.dtype)
             x.add_(step * n.to(x.device))
+
+
+def langevin_update(latents: list[Tensor], predict, view_ids: Tensor, window: Window, energy: Energy,
+                    generator: torch.Generator, steps: int, noise_steps: int, step: float,
+                    prior_var: float, patch_size: int = 0) -> None:
+    """``steps`` Langevin steps of ``latents`` on ``energy(window, predict(view_ids, window))``,
+    the first ``noise_steps`` with noise; with ``patch_size`` on a random crop of ``window``
+    (a whole-view batch would make each step a whole-view prediction)."""
+    if not latents or steps <= 0:
+        return
+    if 0 < patch_size < max(window.width, window.height):
+        window = window.random_subwindow(patch_size, generator)
+    for k in range(steps):
+        value = energy(window, predict(view_ids, window))
+        grads = torch.autograd.grad(value, latents, allow_unused=True)
+        langevin_step(latents, list(grads), step, prior_var, noise=k < noise_steps, generator=generator)

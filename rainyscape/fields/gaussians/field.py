@@ -159,7 +159,7 @@ class GaussianField(Field):
                "opacities": c.lr_opacities, "sh0": c.lr_sh0, "shN": c.lr_shN}
         self._groups = {name: ParamGroup(name, [self.params[name]], lr, eps=1e-15)
                         for name, lr in lrs.items()}
-        # The decay length is the run length, set by the training callback once it is known.
+        # Exponential decay to lr_means_final over the whole run (lr_decay_steps 0: the run).
         self._groups["means"].lr_decay = c.lr_means_final / c.lr_means
         return list(self._groups.values())
 
@@ -225,7 +225,7 @@ class GaussianField(Field):
 
 
 class GaussianTraining(Callback):
-    """The 3DGS schedule: SH degree, position lr decay, densification, opacity reset."""
+    """The 3DGS schedule: SH degree, densification, opacity reset."""
 
     def __init__(self, field: GaussianField):
         self.field = field
@@ -238,12 +238,6 @@ class GaussianTraining(Callback):
         f = self.field
         sched = f.schedule(state.max_iters)
         f.active_sh_degree.fill_(min(f.config.sh_degree, (state.step + 1) // sched.sh_every))
-        group = f._groups.get("means")
-        if group is not None and "means" in state.optimizers:
-            # The trainer set this step's lr before the run length reached us: set it again.
-            group.lr_decay_steps = state.max_iters
-            lr = group.lr * group.lr_decay ** (state.step / state.max_iters)
-            state.optimizers["means"].param_groups[0]["lr"] = lr
 
     def after_backward(self, state: TrainState, output: RenderOutput) -> None:
         sched = self.field.schedule(state.max_iters)

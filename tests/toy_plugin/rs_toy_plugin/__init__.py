@@ -1,4 +1,4 @@
-"""A third-party plugin as users write one: a field, a loss, a dataparser-free method.
+"""A third-party plugin as users write one: a field, a rain head, a loss, a method.
 
 It lives outside the rainyscape package and registers only through entry points
 (tests build a real ``*.dist-info`` for it), so it proves a renderer drops in without
@@ -10,11 +10,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from rainyscape.cameras import window_rays
-from rainyscape.components import Field, Loss, LossContext, ParamGroup, RenderOutput
-from rainyscape.config import ComponentConfig, LossConfig, MethodSpec, PipelineConfig, TrainerConfig
+from rainyscape.components import Field, Loss, LossContext, ParamGroup, RainHead, RenderOutput
+from rainyscape.config import (ComponentConfig, LossConfig, MethodSpec, PhaseConfig, PipelineConfig,
+                               TrainerConfig)
 
 
 class DirectionField(Field):
@@ -42,10 +44,32 @@ class DirectionField(Field):
         return [ParamGroup("direction_mlp", list(self.mlp.parameters()), lr=self.config.lr)]
 
 
+class ToyRain(RainHead):
+    """A rain layer per view: a learnable coarse map, upsampled to the image (no latents)."""
+
+    @dataclass
+    class Config:
+        cells: int = 8
+        lr: float = 1e-2
+
+    def __init__(self, config: "ToyRain.Config", scene):
+        super().__init__()
+        self.config = config
+        self.maps = nn.Parameter(torch.full((scene.num_images, 1, config.cells, config.cells), -4.0))
+        self.size = (scene.height, scene.width)
+
+    def forward(self, view_ids, window):
+        full = F.interpolate(self.maps[view_ids], size=self.size, mode="bilinear", align_corners=False)
+        return window.crop(torch.sigmoid(full).expand(-1, 3, -1, -1))
+
+    def param_groups(self) -> list[ParamGroup]:
+        return [ParamGroup("toy_rain", [self.maps], lr=self.config.lr)]
+
+
 class MeanAbsolute(Loss):
     """Mean absolute error between the render (plus rain, if any) and the input."""
 
-    phases = ("warmup", "joint")
+    phases = ("warmup", "joint")  # its default phases (those a method has)
 
     def __call__(self, ctx: LossContext) -> torch.Tensor:
         pred = ctx.rendered if ctx.rain is None else ctx.rendered + ctx.rain
@@ -59,8 +83,11 @@ toy_method = MethodSpec(
         method="toy",
         dataparser=ComponentConfig("auto"),
         field=ComponentConfig("direction", {"hidden": 16}),
+        # A warm-up over the whole run; the empty joint phase lets loss terms name it.
+        phases={"warmup": PhaseConfig(end=1.0, patches=16, patch_size=16),
+                "joint": PhaseConfig(end=1.0)},
         losses={"mean-abs": LossConfig("mean-abs", weight=1.0, phases=("warmup",))},
-        trainer=TrainerConfig(max_iters=20, warmup_fraction=1.0, eval_every=0, log_every=5,
+        trainer=TrainerConfig(max_iters=20, eval_every=0, log_every=5,
                               checkpoint_every=10, progress=False),
     ),
 )

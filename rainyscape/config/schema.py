@@ -1,0 +1,311 @@
+"""The config dataclasses, value coercion and range checks, and :func:`materialize`.
+
+A method's recipe names its components with options as plain dicts; :func:`materialize`
+turns each into the component's own ``Config`` dataclass (validating every key, type and
+range) and checks the phases and loss terms against each other. It is the only gate from
+plain data to typed configs: :func:`rainyscape.config.method_config` and
+:func:`rainyscape.config.load_yaml` call it, and everything after them sees typed options.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import math
+import types
+import typing
+from dataclasses import dataclass, field, fields, is_dataclass
+from typing import Any
+
+from rainyscape import registry
+from rainyscape.errors import ConfigError
+
+DETACHABLE = ("", "rendered", "rain")  # what a loss term may stop gradients into
+
+
+def bounded(default: Any, lo: float | None = None, hi: float | None = None, **kwargs) -> Any:
+    """A dataclass field whose value must lie in [lo, hi] (checked by :func:`coerce_field`)."""
+    return field(default=default, metadata={"min": lo, "max": hi}, **kwargs)
+
+
+@dataclass
+class TrainerConfig:
+    """The run's length and bookkeeping (the engine's options)."""
+
+    max_iters: int = bounded(2000, 1)
+    stop_at: int = bounded(0, 0)  # stop after this step (0: max_iters); resume continues the same schedule
+    seed: int = 0
+    device: str = "auto"  # auto | cpu | cuda | cuda:N
+    log_every: int = bounded(25, 1)
+    eval_every: int = bounded(500, 0)  # periodic evaluation on a few views (0: off)
+    eval_views: int = bounded(2, 0)
+    checkpoint_every: int = bounded(1000, 0)  # steps between checkpoints (0: only at the end)
+    keep_checkpoints: int = bounded(2, 0)  # newest checkpoints kept (0: all)
+    output_dir: str = "outputs"
+    progress: bool = True
+
+
+@dataclass
+class PhaseConfig:
+    """One phase of a method's schedule: how long it runs, what a step sees, what acts in it.
+
+    Phases run in the order the method lists them; each ends at ``end`` (a fraction of
+    ``trainer.max_iters``) and the last at the end of the run. Loss terms name the phases
+    they act in (``LossConfig.phases``).
+    """
+
+    end: float = bounded(1.0, 0.0, 1.0)  # this phase runs until step round(end * max_iters)
+    patches: int = bounded(1, 1)  # a batch: this many windows from random training views ...
+    patch_size: int = bounded(64, 0)  # ... of this size in pixels (0: whole images)
+    heads: tuple[str, ...] = ()  # pipeline heads predicting image layers here (e.g. rain_head)
+    field_lr_scale: float = bounded(1.0, 0.0)  # the field's scheduled lr times this ...
+    field_lr: float | None = bounded(None, 0.0)  # ... or this fixed lr (the paper's NeRF: 1e-6)
+
+
+@dataclass
+class ComponentConfig:
+    name: str
+    options: Any = field(default_factory=dict)  # a recipe's dict; the component's Config once materialised
+
+
+@dataclass
+class LossConfig:
+    name: str  # the registered loss component
+    weight: float = 1.0
+    phases: tuple[str, ...] = ()  # the phases it acts in (empty: the loss class's default phases)
+    detach: str = ""  # "" | "rendered" | "rain": stop gradients into that input
+    options: Any = field(default_factory=dict)
+
+
+@dataclass
+class PipelineConfig:
+    method: str
+    dataparser: ComponentConfig
+    field: ComponentConfig
+    phases: dict[str, PhaseConfig] = field(default_factory=lambda: {"fit": PhaseConfig()})
+    rain_head: ComponentConfig | None = None
+    losses: dict[str, LossConfig] = field(default_factory=dict)
+    postprocess: dict[str, ComponentConfig] = field(default_factory=dict)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    data: str = ""  # scene folder; empty runs the embedded demo scene
+
+    def heads(self) -> dict[str, ComponentConfig]:
+        """The image-layer heads of the pipeline, by config key."""
+        return {} if self.rain_head is None else {"rain_head": self.rain_head}
+
+
+@dataclass
+class MethodSpec:
+    name: str
+    description: str
+    config: PipelineConfig  # the recipe: component options as plain dicts
+
+
+# --------------------------------------------------------------------------- types
+
+
+@dataclass
+class _Empty:
+    pass
+
+
+def config_class(kind: str, name: str) -> type:
+    """The ``Config`` dataclass of a registered component (an empty one if it has none)."""
+    comp = registry.load(kind, name)
+    cfg = getattr(comp, "Config", None)
+    if cfg is None:
+        return _Empty
+    if not is_dataclass(cfg):
+        raise ConfigError(f"{kind} '{name}': its Config is not a dataclass")
+    return cfg
+
+
+def _strip_optional(tp: Any) -> tuple[Any, bool]:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if len(args) == 1 and len(typing.get_args(tp)) == 2:
+            return args[0], True
+    return tp, False
+
+
+def coerce(text: Any, tp: Any, key: str) -> Any:
+    """Convert a command-line string (or a YAML value) to the annotated type."""
+    inner, optional = _strip_optional(tp)
+    if optional and (text is None or (isinstance(text, str) and text.lower() in ("none", "null", ""))):
+        return None
+    origin = typing.get_origin(inner)
+    try:
+        if inner is bool:
+            if isinstance(text, bool):
+                return text
+            low = str(text).lower()
+            if low in ("true", "1", "yes", "on"):
+                return True
+            if low in ("false", "0", "no", "off"):
+                return False
+            raise ValueError
+        if inner is int:
+            if isinstance(text, bool):
+                raise ValueError
+            if isinstance(text, float) and not text.is_integer():
+                raise ValueError
+            return int(text) if not isinstance(text, str) else int(text.replace("_", ""))
+        if inner is float:
+            if isinstance(text, bool):
+                raise ValueError
+            value = float(text)
+            if not math.isfinite(value):
+                raise ConfigError(f"{key}: {text} is not a finite number")
+            return value
+        if inner is str:
+            return str(text)
+        if origin is typing.Literal:
+            choices = typing.get_args(inner)
+            for c in choices:
+                if str(c) == str(text):
+                    return c
+            raise ConfigError(f"{key}: '{text}' is not one of {', '.join(map(str, choices))}")
+        if origin in (tuple, list):
+            args = typing.get_args(inner)
+            item_tp = args[0] if args else str
+            if isinstance(text, str):
+                parts = [p.strip() for p in text.strip("()[] ").split(",") if p.strip()]
+            else:
+                parts = list(text)
+            values = [coerce(p, item_tp, key) for p in parts]
+            return tuple(values) if origin is tuple else values
+        if origin is dict or inner is dict:
+            if isinstance(text, dict):
+                return dict(text)
+            raise ValueError
+    except ConfigError:
+        raise
+    except (TypeError, ValueError):
+        raise ConfigError(f"{key}: cannot read '{text}' as {_type_name(tp)}") from None
+    return text
+
+
+def coerce_field(cls: type, name: str, value: Any, key: str) -> Any:
+    """``value`` coerced to field ``name`` of dataclass ``cls`` and checked against its range."""
+    f = next(f for f in fields(cls) if f.name == name)
+    out = coerce(value, typing.get_type_hints(cls)[name], key)
+    lo, hi = f.metadata.get("min"), f.metadata.get("max")
+    for item in (out if isinstance(out, (tuple, list)) else [out]):
+        if not isinstance(item, (int, float)) or isinstance(item, bool):
+            continue
+        if (lo is not None and item < lo) or (hi is not None and item > hi):
+            span = (f"at least {lo:g}" if hi is None else f"at most {hi:g}" if lo is None
+                    else f"between {lo:g} and {hi:g}")
+            raise ConfigError(f"{key}: must be {span}, got {item:g}")
+    return out
+
+
+def _type_name(tp: Any) -> str:
+    inner, optional = _strip_optional(tp)
+    name = getattr(inner, "__name__", None) or str(inner).replace("typing.", "")
+    return f"{name} or none" if optional else name
+
+
+def build_dataclass(cls: type, values: dict, where: str) -> Any:
+    """``cls(**values)`` with every key known, every value coerced and range-checked."""
+    valid = [f.name for f in fields(cls)]
+    kwargs = {}
+    for key, value in values.items():
+        if key not in valid:
+            raise ConfigError(unknown_key_message(f"{where}.{key}", key, valid))
+        kwargs[key] = coerce_field(cls, key, value, f"{where}.{key}")
+    out = cls(**kwargs)
+    for f in fields(cls):  # defaults pass the range check too (a component's bad default is a bug)
+        if f.name not in kwargs and f.metadata:
+            coerce_field(cls, f.name, getattr(out, f.name), f"{where}.{f.name}")
+    return out
+
+
+def set_option(obj: Any, path: list[str], value: Any, where: str) -> None:
+    """Set ``obj.<path[0]>`` (a dataclass field) from text, typed and range-checked."""
+    if len(path) != 1:
+        raise ConfigError(f"{where}.{'.'.join(path)}: options are one level deep under {where}")
+    name = path[0]
+    valid = [f.name for f in fields(obj)]
+    if name not in valid:
+        raise ConfigError(unknown_key_message(f"{where}.{name}", name, valid))
+    setattr(obj, name, coerce_field(type(obj), name, value, f"{where}.{name}"))
+
+
+def unknown_key_message(full_key: str, key: str, valid: list[str]) -> str:
+    close = difflib.get_close_matches(key, valid, n=1)
+    hint = f" Did you mean '{close[0]}'?" if close else ""
+    return f"unknown key '{full_key}'.{hint} Valid keys here: {', '.join(valid) or '(none)'}"
+
+
+# --------------------------------------------------------------------- materialize
+
+
+def materialize_component(kind: str, comp: ComponentConfig, where: str) -> ComponentConfig:
+    """The component with its options as its typed ``Config`` (a copy; validated)."""
+    cls = config_class(kind, comp.name)
+    opts = comp.options
+    values = dataclasses.asdict(opts) if is_dataclass(opts) else dict(opts or {})
+    return ComponentConfig(comp.name, build_dataclass(cls, values, where))
+
+
+def default_phases(name: str, method_phases: list[str]) -> tuple[str, ...]:
+    """The phases a loss term added without ``phases`` acts in: the loss class's own
+    (those of them the method has), else every phase of the method."""
+    own = [p for p in getattr(registry.load("loss", name), "phases", ()) if p in method_phases]
+    return tuple(own or method_phases)
+
+
+def materialize(cfg: PipelineConfig) -> PipelineConfig:
+    """A copy of ``cfg`` with typed component options, checked phases and loss terms."""
+    out = copy.deepcopy(cfg)
+    if not cfg.phases:
+        raise ConfigError("the method declares no phases")
+    out.phases = {name: build_dataclass(PhaseConfig, _fields_of(p), f"phases.{name}")
+                  for name, p in cfg.phases.items()}
+    _check_phases(out)
+    out.trainer = build_dataclass(TrainerConfig, _fields_of(cfg.trainer), "trainer")
+    out.dataparser = materialize_component("dataparser", cfg.dataparser, "dataparser")
+    out.field = materialize_component("field", cfg.field, "field")
+    if cfg.rain_head is not None:
+        out.rain_head = materialize_component("rain_head", cfg.rain_head, "rain_head")
+    names = list(out.phases)
+    out.losses = {}
+    for key, loss in cfg.losses.items():
+        comp = materialize_component("loss", ComponentConfig(loss.name, loss.options), f"losses.{key}")
+        phases = tuple(loss.phases) or default_phases(loss.name, names)
+        bad = [p for p in phases if p not in names]
+        if bad:
+            raise ConfigError(f"losses.{key}.phases: unknown phase {bad[0]!r}; this method's phases "
+                              f"are {', '.join(names)}")
+        if loss.detach not in DETACHABLE:
+            raise ConfigError(f"losses.{key}.detach: '{loss.detach}' is not one of "
+                              f"'', {', '.join(DETACHABLE[1:])}")
+        out.losses[key] = dataclasses.replace(loss, options=comp.options, phases=phases,
+                                              weight=float(loss.weight))
+    out.postprocess = {key: materialize_component("postprocess", pp, f"postprocess.{key}")
+                       for key, pp in cfg.postprocess.items()}
+    return out
+
+
+def _fields_of(obj: Any) -> dict:
+    return {f.name: getattr(obj, f.name) for f in fields(obj)} if is_dataclass(obj) else dict(obj)
+
+
+def _check_phases(cfg: PipelineConfig) -> None:
+    heads = cfg.heads()
+    ends = [p.end for p in cfg.phases.values()]
+    if any(b < a for a, b in zip(ends, ends[1:])):
+        raise ConfigError(f"phases end in order: got ends {ends} for {', '.join(cfg.phases)}")
+    for name, phase in cfg.phases.items():
+        for head in phase.heads:
+            if head not in heads:
+                have = ", ".join(heads) or "none (set rain_head=NAME)"
+                raise ConfigError(f"phases.{name}.heads: '{head}' is not a head of this pipeline; "
+                                  f"its heads: {have}")
+
+
+def is_materialized(cfg: PipelineConfig) -> bool:
+    return is_dataclass(cfg.field.options) and is_dataclass(cfg.dataparser.options)
