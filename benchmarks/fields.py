@@ -35,11 +35,13 @@ def clean_demo_overrides(data: str) -> list[str]:
 def build(method: str, overrides: list[str], out: Path):
     from rainyscape import config
     from rainyscape.engine.pipeline import build_pipeline, load_scene, resolve_device
+    from rainyscape.engine.run import scene_folder
     from rainyscape.engine.trainer import Trainer, seed_everything
+    from rainyscape.workflow import with_scene
 
-    cfg = config.method_config(method, overrides)
+    cfg = with_scene(config.method_config(method, overrides))
     seed_everything(cfg.trainer.seed)
-    scene = load_scene(cfg)
+    scene = load_scene(cfg, scene_folder(cfg))
     pipeline = build_pipeline(cfg, scene, resolve_device(cfg.trainer.device))
     out.mkdir(parents=True, exist_ok=True)
     return cfg, Trainer(pipeline, out)
@@ -56,11 +58,12 @@ def timed_steps(trainer, count: int) -> list[float]:
 
 @torch.no_grad()
 def heldout_metrics(trainer) -> dict:
+    from rainyscape.eval.evaluate import render_view
     from rainyscape.imaging.metrics import psnr, ssim
 
     scene, psnrs, ssims = trainer.scene, [], []
     for i in scene.eval_indices:
-        rgb = trainer.render_view(i).rgb.clamp(0, 1)
+        rgb = render_view(trainer.p, i).rgb.clamp(0, 1)
         reference = scene.clean_images if scene.clean_images is not None else scene.images
         clean = reference[i].to(trainer.device).permute(2, 0, 1)[None].float() / 255
         psnrs.append(float(psnr(rgb, clean)))
@@ -70,7 +73,7 @@ def heldout_metrics(trainer) -> dict:
 
 
 def speed(args) -> dict:
-    base = clean_demo_overrides(args.data) + ["trainer.warmup_patches=4096", "trainer.warmup_patch_size=1"]
+    base = clean_demo_overrides(args.data) + ["phases.fit.patches=4096", "phases.fit.patch_size=1"]
     out = Path(args.out)
     _, grid = build("nerf", base + [f"trainer.max_iters={args.grid_steps}",
                                     f"field.lr_decay_steps={args.grid_steps}"], out / "speed-grid")
