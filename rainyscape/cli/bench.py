@@ -24,7 +24,8 @@ from rainyscape.cli import run_cli
 
 
 def main(argv: list[str]) -> int:
-    from rainyscape.eval.bench import BenchOptions, run_bench
+    from rainyscape.bench.options import BenchOptions
+    from rainyscape.bench.run import run_bench
     from rainyscape.eval.cli_args import parse_args
     from rainyscape.errors import ConfigError
 
