@@ -2,13 +2,15 @@
 
 Usage:
   rs-export RUN_DIR [what=auto|mesh|gaussians|cameras] [format=ply|glb] [resolution=128]
-                    [level=DENSITY] [out=RUN_DIR/export] [device=auto] [--no-images]
+                    [level=DENSITY] [out=RUN_DIR/export] [device=auto] [--no-images] [force=true]
 
 what=auto exports the field (Gaussians: the standard 3DGS point_cloud.ply; density fields:
 a marching-cubes mesh) and the cameras. Meshes: the density is sampled on a lattice over
 the scene box (resolution samples along its longest side) and cut at ``level`` (default:
 the density at which one lattice step is half opaque). Cameras: nerfstudio transforms.json
 with the de-rained render of every view under images/ (--no-images: cameras only).
+A non-empty out folder (a scene of yours, say) is refused unless force=true: the export
+would replace transforms.json and images/ there.
 """
 
 from __future__ import annotations
@@ -30,9 +32,19 @@ class ExportArgs:
     out: str = opt("", "output folder (default: RUN_DIR/export)")
     images: bool = opt(True, "cameras: the de-rained render of every view under images/")
     device: str = opt("auto", "auto | cpu | cuda")
+    force: bool = opt(False, "write into a non-empty out folder (replacing what the export writes)")
 
 
 COMMAND = Command("rs-export", __doc__, ExportArgs, positional="RUN_DIR")
+
+
+def check_output_folder(out: Path, force: bool) -> None:
+    """Refuse to write into a folder that already holds files, unless ``force``."""
+    from rainyscape.errors import DataError
+
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not force:
+        raise DataError(f"{out}: folder exists and is not empty; choose another out= or pass "
+                        "force=true (the export writes transforms.json and images/ there)")
 
 
 def main(argv: list[str]) -> int:
@@ -49,6 +61,7 @@ def main(argv: list[str]) -> int:
     if opts.resolution < 8:
         raise ConfigError(f"rs-export: resolution must be at least 8, got {opts.resolution}")
     out = Path(opts.out).expanduser() if opts.out else folder / "export"
+    check_output_folder(out, opts.force)
     from rainyscape.components import PlyExportable
     from rainyscape.engine.run import load_run
     from rainyscape.eval import export
