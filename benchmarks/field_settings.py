@@ -16,7 +16,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).parent))
 from fields import build, timed_steps  # noqa: E402
 
-from rainyscape.workflow import quick_eval  # noqa: E402
+from rainyscape.eval.views import quick_eval  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).parent / "results" / "scenes" / "demo-64x3x6-v3"
 
@@ -32,7 +32,7 @@ def main(argv: list[str]) -> int:
                                        "trainer.checkpoint_every=0", "trainer.eval_views=6", *overrides],
                        Path("outputs/benchmarks/field_settings") / tag)
     seconds = sum(timed_steps(trainer, iters))
-    scores = {k: round(v, 2) for k, v in quick_eval(trainer.p).items()}
+    scores = {k: round(v, 2) for k, v in quick_eval(trainer.p, trainer.cfg.eval_views).items()}
     print(tag, " ".join(overrides), f"{seconds:.0f}s", scores, flush=True)
     return 0
 

@@ -58,7 +58,7 @@ def timed_steps(trainer, count: int) -> list[float]:
 
 @torch.no_grad()
 def heldout_metrics(trainer) -> dict:
-    from rainyscape.eval.evaluate import render_view
+    from rainyscape.eval.views import render_view
     from rainyscape.imaging.metrics import psnr, ssim
 
     scene, psnrs, ssims = trainer.scene, [], []

@@ -102,6 +102,24 @@ def test_rs_export_cameras(trained_run):
     assert all((out / f["file_path"]).is_file() for f in content["frames"])
 
 
+def test_rs_export_never_overwrites_a_folder_of_yours(tmp_path, trained_run):
+    scene = tmp_path / "scene"  # what rs-process-data writes: the user's own dataset
+    (scene / "images").mkdir(parents=True)
+    files = {scene / "transforms.json": b'{"frames": ["mine"]}',
+             scene / "images" / "001.png": bytes(range(256)) * 4, scene / "notes.txt": b"keep me\n"}
+    for path, content in files.items():
+        path.write_bytes(content)
+    done = _cli("rs-export", str(trained_run), "what=cameras", f"out={scene}", "device=cpu")
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
+    assert done.stderr.startswith("error: ") and str(scene) in done.stderr and "force=true" in done.stderr
+    assert {p: p.read_bytes() for p in files} == files  # byte for byte
+    assert sorted(p.name for p in scene.rglob("*")) == ["001.png", "images", "notes.txt", "transforms.json"]
+    forced = _cli("rs-export", str(trained_run), "what=cameras", f"out={scene}", "device=cpu", "force=true")
+    assert forced.returncode == 0, forced.stderr
+    assert len(json.loads((scene / "transforms.json").read_text())["frames"]) == 12
+    assert (scene / "notes.txt").read_bytes() == files[scene / "notes.txt"]  # only its own files replaced
+
+
 def test_cli_errors_are_one_line(tmp_path, trained_run):
     for args in (["rs-eval", str(tmp_path)], ["rs-render", str(tmp_path)], ["rs-export", str(tmp_path)],
                  ["rs-eval"], ["rs-export", str(trained_run), "what=everything"],

@@ -8,7 +8,9 @@ import math
 import pytest
 import torch
 
-from rainyscape.eval.evaluate import correlation, evaluate_pipeline, write_metrics
+from rainyscape.eval.protocol import evaluate_pipeline, write_metrics
+from rainyscape.eval.rain_stats import correlation
+from rainyscape.eval.views import quick_eval
 from rainyscape.imaging.angles import angle_difference_deg, mean_angle_deg
 from rainyscape.imaging.metrics import psnr, ssim
 from _eval_fixtures import OFFSET, make_pipeline
@@ -92,3 +94,21 @@ def test_multi_direction_rain_reports_every_direction():
     rows = evaluate_pipeline(pipe)["per_view"]
     train = [r for r in rows if r["split"] == "train"]
     assert all(len(r["rain_angles_deg"]) == 2 and r["rain_angles_deg"][0] == r["rain_angle_deg"] for r in train)
+
+
+def test_quick_eval_is_psnr_of_the_first_views_vs_rainy_and_clean():
+    pipe = make_pipeline()
+    scene = pipe.scene
+    known = -10 * math.log10(OFFSET ** 2)
+    ev = quick_eval(pipe, views=2)
+    assert set(ev) == {"train_psnr_rainy", "train_psnr_clean", "heldout_psnr_rainy", "heldout_psnr_clean"}
+    assert ev["train_psnr_clean"] == pytest.approx(known, abs=0.05)
+    assert ev["heldout_psnr_clean"] == pytest.approx(known, abs=0.05)
+    rendered = (scene.clean_images.permute(0, 3, 1, 2).float() / 255).clamp(0, 1 - OFFSET) + OFFSET
+    rainy = scene.images.permute(0, 3, 1, 2).float() / 255
+    first_two = [float(psnr(rendered[i], rainy[i])) for i in scene.train_indices[:2]]
+    assert ev["train_psnr_rainy"] == pytest.approx(sum(first_two) / 2, abs=1e-4)
+    assert ev["heldout_psnr_rainy"] == pytest.approx(float(psnr(rendered[3], rainy[3])), abs=1e-4)
+    scene.clean_images = None  # no clean images: the rainy PSNR only
+    assert set(quick_eval(pipe, views=1)) == {"train_psnr_rainy", "heldout_psnr_rainy"}
+    assert quick_eval(pipe, views=0) == {}

@@ -311,7 +311,7 @@ def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):
     over three seeds. Growth is capped at 5000 Gaussians (a 200-step schedule densifies
     every step; uncapped, 48 px views grow to 40000 and the fit takes 5x longer)."""
     from rainyscape.engine.trainer import Trainer
-    from rainyscape.eval.evaluate import render_image
+    from rainyscape.eval.views import render_image
     from rainyscape.imaging.metrics import psnr
 
     cfg, pipe = _quiet_pipeline("3dgs", tiny_scene, ["trainer.max_iters=200", "phases.fit.patch_size=0",

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from rainyscape.eval.evaluate import evaluate_pipeline, write_metrics
+from rainyscape.eval.protocol import evaluate_pipeline, write_metrics
 from rainyscape.eval.report import build_report, read_log
 from _eval_fixtures import make_pipeline
 

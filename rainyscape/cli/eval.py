@@ -16,12 +16,16 @@ import sys
 from dataclasses import dataclass
 
 from rainyscape.cli import run_cli
+from rainyscape.cli.args import Command, opt, parse, print_help, run_dir
 
 
 @dataclass
 class EvalOptions:
-    device: str = "auto"
-    step: int | None = None  # a checkpoint's step (default: the latest)
+    device: str = opt("auto", "auto | cpu | cuda")
+    step: int | None = opt(None, "the checkpoint's step (default: the latest)")
+
+
+COMMAND = Command("rs-eval", __doc__, EvalOptions, positional="RUN_DIR")
 
 
 def print_summary(summary: dict) -> None:
@@ -30,25 +34,22 @@ def print_summary(summary: dict) -> None:
 
 
 def main(argv: list[str]) -> int:
-    from rainyscape.eval.cli_args import parse_args, run_dir_arg
-
-    parsed, opts = parse_args(argv, EvalOptions, set(), "rs-eval")
-    if "--help" in parsed.flags or "-h" in parsed.flags:
-        print(__doc__.strip())
-        return 0
-    run_dir = run_dir_arg(parsed, "rs-eval")
+    args = parse(argv, COMMAND)
+    if args.help:
+        return print_help(COMMAND)
+    folder, opts = run_dir(args, COMMAND), args.options
     from rainyscape.engine.run import load_run
-    from rainyscape.eval.evaluate import evaluate_pipeline, write_metrics
+    from rainyscape.eval.protocol import evaluate_pipeline, write_metrics
 
-    pipeline, step = load_run(run_dir, opts.device, opts.step)
-    metrics = evaluate_pipeline(pipeline, run_dir)
+    pipeline, step = load_run(folder, opts.device, opts.step)
+    metrics = evaluate_pipeline(pipeline, folder)
     metrics["step"] = step
-    write_metrics(run_dir, metrics)
-    print(f"{run_dir} (step {step}):")
+    write_metrics(folder, metrics)
+    print(f"{folder} (step {step}):")
     print_summary(metrics["summary"])
     if not metrics["lpips"]["available"]:
         print(f"  lpips: unavailable ({metrics['lpips']['reason']})")
-    print(f"wrote {run_dir / 'metrics.json'} and {run_dir / 'report.html'}")
+    print(f"wrote {folder / 'metrics.json'} and {folder / 'report.html'}")
     return 0
 
 

@@ -4,64 +4,51 @@ Usage:
   rs-process-data video  --data clip.mp4 --output-dir scene/ [options]
   rs-process-data images --data photos/  --output-dir scene/ [options]
 then: rs-train method=rainyscape-3dgs data=scene/
+
+video: a video clip (the sharpest frame of each window is kept); images: a folder of photos
+of one scene, one camera. Options are written --key VALUE (as after nerfstudio's
+ns-process-data) or key=value: --output-dir scene/ and output_dir=scene/ are the same.
+The scene folder holds images/, sparse/0/, transforms.json and process_report.json;
+rs-train reads it with the colmap dataparser.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
+from dataclasses import dataclass
 
 from rainyscape.cli import run_cli
+from rainyscape.cli.args import Command, opt, parse, print_help
+
+KINDS = ("video", "images")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from rainyscape.process.sfm import CAMERA_MODELS, MATCHERS
+@dataclass
+class ProcessArgs:
+    data: str = opt("", "the video file (video) or the folder of photos (images)")
+    output_dir: str = opt("", "scene folder to write")
+    num_frames: int = opt(100, "video: frames kept, spread over the clip")
+    crop: tuple[float, float, float, float] = opt((0.0, 0.0, 0.0, 0.0),
+                                                  "fractions of the frame cut from the top, bottom, left, right")
+    max_side: int = opt(0, "downsize so the longer side is at most this many pixels (0: keep)")
+    camera_model: str = opt("SIMPLE_RADIAL", "COLMAP camera model fitted before undistortion")
+    camera_per_image: bool = opt(False, "one camera per frame instead of one shared camera")
+    matcher: str = opt("", "sequential | exhaustive (default: sequential for video, exhaustive for images)")
+    overlap: int = opt(10, "sequential matching: neighbours matched per frame")
+    loop_detection: bool = opt(True, "sequential matching: detect loops")
+    vocab_tree: str = opt("", "COLMAP vocabulary tree for loop detection (default: built from the clip)")
+    max_features: int = opt(8192, "SIFT features per frame")
+    min_registered: float = opt(0.5, "fail when fewer frames than this fraction register")
+    init_min_tri_angle: float = opt(16.0, "degrees of parallax the first frame pair needs (lower it, "
+                                          "e.g. to 4, for narrow baselines such as a stereo pair)")
+    num_threads: int = opt(-1, "CPU threads (-1: all)")
+    seed: int = opt(0, "random seed")
+    overwrite: bool = opt(False, "replace a scene already processed in the output folder")
+    quiet: bool = opt(False, "no progress output")
+    verbose: bool = opt(False, "show COLMAP's own log")
 
-    parser = argparse.ArgumentParser(
-        prog="rs-process-data", description=__doc__.strip().splitlines()[0],
-        epilog="The scene folder holds images/, sparse/0/, transforms.json and "
-               "process_report.json; rs-train reads it with the colmap dataparser.")
-    subs = parser.add_subparsers(dest="kind", required=True, metavar="{video,images}")
-    for kind, helptext in (("video", "a video clip (sharpest frame of each window is kept)"),
-                           ("images", "a folder of photos of one scene, one camera")):
-        sub = subs.add_parser(kind, help=helptext, description=helptext)
-        sub.add_argument("--data", required=True, help="the video file" if kind == "video"
-                         else "the folder of photos")
-        sub.add_argument("--output-dir", required=True, help="scene folder to write")
-        if kind == "video":
-            sub.add_argument("--num-frames", type=int, default=100,
-                             help="frames kept, spread over the clip (default 100)")
-        sub.add_argument("--crop", type=float, nargs=4, default=(0.0, 0.0, 0.0, 0.0),
-                         metavar=("TOP", "BOTTOM", "LEFT", "RIGHT"),
-                         help="fractions of the frame cut from each side (default none)")
-        sub.add_argument("--max-side", type=int, default=0,
-                         help="downsize so the longer side is at most this many pixels (0: keep)")
-        sub.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=CAMERA_MODELS,
-                         help="COLMAP camera model fitted before undistortion (default SIMPLE_RADIAL)")
-        sub.add_argument("--camera-per-image", action="store_true",
-                         help="one camera per frame instead of one shared camera")
-        matcher = "sequential" if kind == "video" else "exhaustive"
-        sub.add_argument("--matcher", choices=MATCHERS, default=matcher,
-                         help=f"feature matching (default {matcher})")
-        sub.add_argument("--overlap", type=int, default=10,
-                         help="sequential matching: neighbours matched per frame (default 10)")
-        sub.add_argument("--no-loop-detection", action="store_true",
-                         help="sequential matching: skip loop detection")
-        sub.add_argument("--vocab-tree", default="",
-                         help="COLMAP vocabulary tree for loop detection (default: built from the clip)")
-        sub.add_argument("--max-features", type=int, default=8192, help="SIFT features per frame")
-        sub.add_argument("--min-registered", type=float, default=0.5,
-                         help="fail when fewer frames than this fraction register (default 0.5)")
-        sub.add_argument("--init-min-tri-angle", type=float, default=16.0,
-                         help="degrees of parallax the first frame pair needs (default 16; lower "
-                              "it, e.g. to 4, for narrow baselines such as a stereo pair)")
-        sub.add_argument("--num-threads", type=int, default=-1, help="CPU threads (-1: all)")
-        sub.add_argument("--seed", type=int, default=0)
-        sub.add_argument("--overwrite", action="store_true",
-                         help="replace a scene already processed in --output-dir")
-        sub.add_argument("--quiet", action="store_true", help="no progress output")
-        sub.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
-    return parser
+
+COMMAND = Command("rs-process-data", __doc__, ProcessArgs, dashed=True, positional="video|images")
 
 
 def main(argv: list[str]) -> int:
@@ -69,31 +56,39 @@ def main(argv: list[str]) -> int:
 
     from rainyscape.errors import ConfigError
 
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:  # argparse printed usage or help already
-        return int(exc.code or 0)
-    if getattr(args, "num_frames", 2) < 2:
-        raise ConfigError(f"--num-frames {args.num_frames}: SfM needs at least 2 frames")
-    if args.max_side < 0:
-        raise ConfigError(f"--max-side {args.max_side}: must be >= 0")
+    args = parse(argv, COMMAND)
+    if args.help:
+        return print_help(COMMAND)
+    if len(args.positional) != 1 or args.positional[0] not in KINDS:
+        raise ConfigError(f"rs-process-data: say what to process first: video or images, got "
+                          f"{' '.join(args.positional) or 'nothing'} (see rs-process-data --help)")
+    kind, opts = args.positional[0], args.options
+    missing = [f"--{k.replace('_', '-')}" for k in ("data", "output_dir") if not getattr(opts, k)]
+    if missing:
+        raise ConfigError(f"rs-process-data {kind}: {' and '.join(missing)} required "
+                          f"(e.g. --data clip.mp4 --output-dir scene/)")
+    if kind == "video" and opts.num_frames < 2:
+        raise ConfigError(f"{args.given['num_frames']}: SfM needs at least 2 frames")
+    if kind == "images" and "num_frames" in args.given:
+        raise ConfigError(f"{args.given['num_frames']}: only for a video (images keeps every photo)")
+    if opts.max_side < 0:
+        raise ConfigError(f"{args.given['max_side']}: must be >= 0")
 
     from rainyscape.process.frames import FrameOptions
     from rainyscape.process.pipeline import ProcessOptions, process_images, process_video
     from rainyscape.process.sfm import SfmOptions
 
-    frames = FrameOptions(num_frames=getattr(args, "num_frames", 0), crop=tuple(args.crop),
-                          max_side=args.max_side)
-    sfm = SfmOptions(camera_model=args.camera_model, single_camera=not args.camera_per_image,
-                     matcher=args.matcher, overlap=args.overlap,
-                     loop_detection=not args.no_loop_detection, vocab_tree=args.vocab_tree,
-                     max_features=args.max_features, min_registered=args.min_registered,
-                     init_min_tri_angle=args.init_min_tri_angle,
-                     num_threads=args.num_threads, seed=args.seed, verbose=args.verbose)
-    options = ProcessOptions(frames=frames, sfm=sfm, overwrite=args.overwrite, progress=not args.quiet)
-    run = process_video if args.kind == "video" else process_images
-    result = run(Path(args.data), Path(args.output_dir), options)
+    frames = FrameOptions(num_frames=opts.num_frames if kind == "video" else 0, crop=opts.crop,
+                          max_side=opts.max_side)
+    sfm = SfmOptions(camera_model=opts.camera_model, single_camera=not opts.camera_per_image,
+                     matcher=opts.matcher or ("sequential" if kind == "video" else "exhaustive"),
+                     overlap=opts.overlap, loop_detection=opts.loop_detection, vocab_tree=opts.vocab_tree,
+                     max_features=opts.max_features, min_registered=opts.min_registered,
+                     init_min_tri_angle=opts.init_min_tri_angle,
+                     num_threads=opts.num_threads, seed=opts.seed, verbose=opts.verbose)
+    options = ProcessOptions(frames=frames, sfm=sfm, overwrite=opts.overwrite, progress=not opts.quiet)
+    run = process_video if kind == "video" else process_images
+    result = run(Path(opts.data), Path(opts.output_dir), options)
     print(f"{result.scene_dir}: {result.registration.summary()}")
     return 0
 

@@ -19,29 +19,33 @@ import sys
 from dataclasses import dataclass
 
 from rainyscape.cli import run_cli
+from rainyscape.cli.args import Command, opt, parse, print_help, run_dir
 
 
 @dataclass
 class RenderArgs:
-    views: str = "all"
-    path: str = "views"
-    frames: int = 60
-    fps: int = 15
-    device: str = "auto"
-    patch: int = 100
-    variance: float = 0.5
-    seed: int = 0
+    views: str = opt("all", "comma-separated view names / indices, or all | train | heldout")
+    video: bool = opt(True, "render path.mp4 along a camera path")
+    path: str = opt("views", "the video's camera path: views (through the training views) | spiral")
+    frames: int = opt(60, "video frames")
+    fps: int = opt(15, "video frames per second")
+    device: str = opt("auto", "auto | cpu | cuda")
+    embedding_study: bool = opt(False, "the paper's Fig. 8 instead of the renders")
+    patch: int = opt(100, "embedding study: side of the centred window (pixels)")
+    variance: float = opt(0.5, "embedding study: variance of the noise added to s, v, p")
+    seed: int = opt(0, "embedding study: noise seed")
+
+
+COMMAND = Command("rs-render", __doc__, RenderArgs, positional="RUN_DIR")
 
 
 def main(argv: list[str]) -> int:
-    from rainyscape.eval.cli_args import parse_args, run_dir_arg
     from rainyscape.errors import ConfigError
 
-    parsed, opts = parse_args(argv, RenderArgs, {"--no-video", "--embedding-study"}, "rs-render")
-    if "--help" in parsed.flags or "-h" in parsed.flags:
-        print(__doc__.strip())
-        return 0
-    run_dir = run_dir_arg(parsed, "rs-render")
+    args = parse(argv, COMMAND)
+    if args.help:
+        return print_help(COMMAND)
+    folder, opts = run_dir(args, COMMAND), args.options
     if opts.path not in ("views", "spiral"):
         raise ConfigError(f"rs-render: path must be views or spiral, got '{opts.path}'")
     if opts.frames < 1 or opts.fps < 1:
@@ -49,23 +53,23 @@ def main(argv: list[str]) -> int:
     from rainyscape.engine.run import load_run
     from rainyscape.eval.report import write_report
 
-    pipeline, step = load_run(run_dir, opts.device)
-    if "--embedding-study" in parsed.flags:
+    pipeline, step = load_run(folder, opts.device)
+    if opts.embedding_study:
         from rainyscape.eval.embedding import write_embedding_study
 
-        out = write_embedding_study(pipeline, run_dir, patch=opts.patch, variance=opts.variance,
+        out = write_embedding_study(pipeline, folder, patch=opts.patch, variance=opts.variance,
                                     seed=opts.seed)
         print(f"wrote {out} and {out.with_suffix('.json')}")
     else:
         from rainyscape.eval.render import RenderOptions, render_run
 
-        result = render_run(pipeline, run_dir, RenderOptions(opts.views, "--no-video" not in parsed.flags,
-                                                             opts.path, opts.frames, opts.fps))
+        result = render_run(pipeline, folder, RenderOptions(opts.views, opts.video, opts.path,
+                                                            opts.frames, opts.fps))
         files = ", ".join(f"{n} {k}" for k, n in result["files"].items())
         print(f"{result['folder']} (step {step}): {files}")
         if "video" in result:
             print(f"video: {result['video']}")
-    print(f"report: {write_report(run_dir)}")
+    print(f"report: {write_report(folder)}")
     return 0
 
 

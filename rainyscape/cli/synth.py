@@ -4,51 +4,37 @@ Usage:
   rs-synth preset=NAME out=DIR [key=value ...]
   rs-synth --list                 presets with their scene and rain strength
 
-Keys: rows, cols, width, height (pixels), mode=static|dynamic, trajectory=sphere|video,
-seed, workers (processes; default: 1 for small jobs, else every core), force=true (write
-into a non-empty folder), and any rain option: density (drops per
-m^3), wind_deg, wind_azimuth_deg, wind2_deg, wind2_azimuth_deg, mix, exposure_s,
-brightness, opacity, size_scale, rain_rate_mm_h, radius_min_mm, radius_max_mm, jitter,
-f_number, near_clip, fps. Prints the rainy-vs-clean PSNR / SSIM (the rain's strength).
+Writes rainy and clean images, depth, the true rain layer and cameras.csv into DIR (never
+into a non-empty folder without force=true) and prints the rainy-vs-clean PSNR / SSIM (the
+rain's strength). Rain options default to the preset's values (the base values are shown).
 """
 
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 
 from rainyscape.cli import run_cli
+from rainyscape.cli.args import Command, opt, parse, print_help
+from rainyscape.synth.params import RainConfig
 
-INT_KEYS = ("rows", "cols", "width", "height", "seed", "workers")
-TEXT_KEYS = ("preset", "out", "mode", "trajectory")
+
+@dataclass
+class SynthArgs:
+    preset: str = opt("demo", "simulator preset (rs-synth --list)")
+    out: str = opt("", "folder to write (required)")
+    rows: int | None = opt(None, "camera rows (default: the preset's)")
+    cols: int | None = opt(None, "camera columns (default: the preset's)")
+    width: int | None = opt(None, "image width in pixels (default: the preset's)")
+    height: int | None = opt(None, "image height in pixels (default: the preset's, or square with width=)")
+    mode: str = opt("static", "static (one rain field, like the paper's Maya data) | dynamic (rain moves)")
+    trajectory: str = opt("sphere", "sphere | video")
+    seed: int = opt(0, "random seed")
+    workers: int | None = opt(None, "processes (default: 1 for small jobs, else every core)")
+    force: bool = opt(False, "write into a non-empty folder")
 
 
-def parse_args(argv: list[str]) -> dict:
-    from rainyscape.config import coerce
-    from rainyscape.errors import ConfigError
-    from rainyscape.synth.params import RainConfig
-
-    values: dict = {}
-    rain_keys = RainConfig.keys()
-    valid = [*TEXT_KEYS, *INT_KEYS, "force", *rain_keys]
-    for arg in argv:
-        if "=" not in arg:
-            raise ConfigError(f"cannot read argument '{arg}': expected key=value")
-        key, text = arg.split("=", 1)
-        if key in TEXT_KEYS:
-            values[key] = text
-        elif key in INT_KEYS:
-            values[key] = coerce(text, int, key)
-        elif key == "force":
-            values[key] = coerce(text, bool, key)
-        elif key in rain_keys:
-            values[key] = coerce(text, float, key)
-        else:
-            import difflib
-
-            close = difflib.get_close_matches(key, valid, n=1)
-            hint = f" Did you mean '{close[0]}'?" if close else ""
-            raise ConfigError(f"unknown key '{key}'.{hint} Valid keys: {', '.join(valid)}")
-    return values
+COMMAND = Command("rs-synth", __doc__, SynthArgs, more=(("Rain options", RainConfig),), actions=("--list",))
 
 
 def print_presets() -> None:
@@ -67,17 +53,13 @@ def print_presets() -> None:
 def main(argv: list[str]) -> int:
     from rainyscape.errors import ConfigError
 
-    flags = {a for a in argv if a.startswith("-")}
-    unknown_flags = flags - {"--help", "-h", "--list"}
-    if unknown_flags:
-        raise ConfigError(f"unknown option {sorted(unknown_flags)[0]}; see rs-synth --help")
-    if "--help" in flags or "-h" in flags:
-        print(__doc__.strip())
-        return 0
-    if "--list" in flags:
+    args = parse(argv, COMMAND)
+    if args.help:
+        return print_help(COMMAND)
+    if "--list" in args.actions:
         print_presets()
         return 0
-    values = parse_args([a for a in argv if not a.startswith("-")])
+    values = dict(args.values)  # only what was given: the preset fills in the rest
     if "out" not in values:
         raise ConfigError("where to write? e.g. rs-synth preset=demo out=data/demo (rs-synth --list shows presets)")
     import json

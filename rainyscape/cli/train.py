@@ -14,21 +14,20 @@ Swap a component with field=NAME (likewise dataparser=, rain_head=, rain_head=no
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 
 from rainyscape.cli import run_cli
+from rainyscape.cli.args import Command, opt, parse, print_help
 
 
-def _split_args(argv: list[str]) -> tuple[set[str], dict[str, str], list[str]]:
-    flags = {a for a in argv if a.startswith("-")}
-    pairs = [a for a in argv if not a.startswith("-")]
-    top, rest = {}, []
-    for arg in pairs:
-        key = arg.split("=", 1)[0]
-        if key in ("method", "resume") and "=" in arg:
-            top[key] = arg.split("=", 1)[1]
-        else:
-            rest.append(arg)
-    return flags, top, rest
+@dataclass
+class TrainArgs:
+    method: str = opt("", "the method to train (rs-train --list)")
+    resume: str = opt("", "a run folder to continue (only trainer.* overrides)")
+
+
+# Every other key=value is a config override, validated by the method's config.
+COMMAND = Command("rs-train", __doc__, TrainArgs, actions=("--list",), overrides="any")
 
 
 def print_listing() -> None:
@@ -46,31 +45,28 @@ def print_listing() -> None:
 def main(argv: list[str]) -> int:
     from rainyscape.errors import ConfigError
 
-    flags, top, rest = _split_args(argv)
-    unknown_flags = flags - {"--help", "-h", "--list"}
-    if unknown_flags:
-        raise ConfigError(f"unknown option {sorted(unknown_flags)[0]}; see rs-train --help")
-    if "--list" in flags:
+    args = parse(argv, COMMAND)
+    method, rest = args.options.method, args.overrides
+    if "--list" in args.actions:
         print_listing()
         return 0
-    if "--help" in flags or "-h" in flags:
-        if "method" not in top:
-            print(__doc__.strip())
-            return 0
+    if args.help:
+        if not method:
+            return print_help(COMMAND)
         from rainyscape import config
 
-        spec = config.method_spec(top["method"])
-        cfg = config.method_config(top["method"], rest)
+        spec = config.method_spec(method)
+        cfg = config.method_config(method, rest)
         print(f"{spec.name}: {spec.description}\n\nconfig (override with key=value):")
         print(config.describe_tree(cfg))
         return 0
-    if "resume" in top:
-        return _resume(top["resume"], rest)
-    if "method" not in top:
+    if args.options.resume:
+        return _resume(args.options.resume, rest)
+    if not method:
         raise ConfigError("which method? e.g. rs-train method=rainyscape-nerf (rs-train --list shows all)")
     from rainyscape import config
 
-    cfg = config.method_config(top["method"], rest)  # validates everything before any work
+    cfg = config.method_config(method, rest)  # validates everything before any work
     return _run(cfg, run_dir=None)
 
 

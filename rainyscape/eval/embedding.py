@@ -21,8 +21,9 @@ from rainyscape.cameras import Window
 from rainyscape.components import HasEmbeddings
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.errors import ConfigError
-from rainyscape.eval.evaluate import streak_angle_deg, to_float
 from rainyscape.eval.images import grid, save_png, to_uint8
+from rainyscape.eval.rain_stats import streak_angle_deg
+from rainyscape.eval.views import to_float
 
 PERTURBATIONS = {"s": "scene_state", "v": "view_states", "p": "camera_vectors"}  # paper: Δs, Δv, Δp
 NOISE_VARIANCE = 0.5  # the paper's

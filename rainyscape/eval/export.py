@@ -21,6 +21,8 @@ from rainyscape.dataparsers.writers import transforms_meta
 from rainyscape.components import DensityField, PlyExportable
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.errors import ConfigError
+from rainyscape.eval.images import save_png, to_uint8
+from rainyscape.eval.views import render_image
 
 
 # ------------------------------------------------------------------------------ mesh
@@ -111,9 +113,6 @@ def export_gaussians(pipeline: Pipeline, path: Path) -> dict:
 
 def export_cameras(pipeline: Pipeline, out_dir: Path, images: bool = True) -> dict:
     """``transforms.json`` and, with ``images``, the de-rained render of every view."""
-    from rainyscape.eval.evaluate import render_image
-    from rainyscape.eval.images import save_png, to_uint8
-
     scene = pipeline.scene
     names = [f"images/{Path(n).stem}.png" for n in scene.image_names]
     if images:

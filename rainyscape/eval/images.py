@@ -9,7 +9,7 @@ import numpy as np
 from torch import Tensor
 
 if TYPE_CHECKING:
-    from rainyscape.eval.evaluate import ViewImages
+    from rainyscape.eval.views import ViewImages
 
 ERROR_VMAX = 0.25  # error maps: mean absolute error 0 .. 0.25 spans the colour map (fixed,
 # so maps of different runs compare)

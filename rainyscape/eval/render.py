@@ -19,8 +19,8 @@ import torch
 
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.eval.camera_path import path_cameras
-from rainyscape.eval.evaluate import progress, render_cameras, view_images
 from rainyscape.eval.images import depth_map, error_map, save_png, strip_panels, side_by_side, to_uint8
+from rainyscape.eval.views import progress, render_cameras, view_images
 
 
 @dataclass

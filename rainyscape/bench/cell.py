@@ -1,0 +1,115 @@
+"""One cell of a benchmark: trained (or resumed, or read back) in a fresh interpreter, so its
+peak memory is its own.
+
+The parent writes ``cell.json`` (method, overrides, output folder) and runs
+``python -m rainyscape.bench.cell CELL.json RESULT.json``; the child trains and writes
+``result.json``. Console output of the child goes to ``bench.log`` in the cell's folder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from rainyscape.bench.matrix import Cell
+from rainyscape.errors import RainyScapeError
+
+
+def find_run(output_dir: Path) -> Path | None:
+    """The newest run folder under a cell's output folder."""
+    runs = sorted(p.parent for p in output_dir.glob("*/*/*/config.yml"))
+    return runs[-1] if runs else None
+
+
+def peak_memory_mib() -> dict:
+    import resource
+
+    import torch
+
+    out = {"peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+    if torch.cuda.is_available():
+        out["peak_cuda_mib"] = torch.cuda.max_memory_allocated() / 2**20
+    return out
+
+
+def training_seconds(run_dir: Path) -> float | None:
+    """Training time from the log (the trainer stamps seconds since its start; a resumed run
+    adds its segments)."""
+    from rainyscape.eval.report import read_log
+
+    train, _ = read_log(run_dir / "log.jsonl")
+    total, last = 0.0, 0.0
+    for rec in train:
+        t = float(rec.get("time", 0.0))
+        if t < last:  # a resume restarted the clock
+            total += last
+        last = t
+    return total + last if train else None
+
+
+def run_cell_here(spec: dict) -> dict:
+    """Train (or resume, or just read back) one cell in this process; returns its result."""
+    from rainyscape.config import method_config
+    from rainyscape.workflow import train_and_evaluate
+
+    output_dir = Path(spec["output_dir"])
+    cfg = method_config(spec["method"], spec["overrides"] + [f"trainer.output_dir={output_dir}"])
+    existing = find_run(output_dir)
+    started = time.perf_counter()
+    status = {}
+    if existing is not None:
+        status = json.loads((existing / "status.json").read_text()) if (existing / "status.json").is_file() else {}
+    if existing is not None and status.get("state") == "finished" and (existing / "metrics.json").is_file():
+        run_dir, resumed = existing, "read back"
+    else:
+        from rainyscape.engine.checkpoint import latest_checkpoint
+
+        resume = existing if existing is not None and latest_checkpoint(existing / "checkpoints") else None
+        run_dir = train_and_evaluate(cfg, resume).run_dir
+        resumed = "resumed" if resume is not None else "trained"
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    return {"status": "finished", "how": resumed, "run_dir": str(run_dir),
+            "wall_s": time.perf_counter() - started, "train_s": training_seconds(run_dir),
+            "iters": cfg.trainer.max_iters, "summary": metrics.get("summary", {}),
+            "postprocess": metrics.get("postprocess", []), "lpips": metrics.get("lpips", {}),
+            "views": metrics.get("views", {}), **peak_memory_mib()}
+
+
+def run_cell_subprocess(cell: Cell, output_dir: Path, device: str, threads: int = 0) -> dict:
+    """Run a cell in a fresh interpreter (``threads`` > 0: that many torch / OpenMP
+    threads); its console output goes to ``bench.log``."""
+    output_dir.mkdir(parents=True, exist_ok=True)
+    spec = {"method": cell.method, "overrides": [f"data={cell.data}", *cell.overrides,
+                                                 f"trainer.device={device}", "trainer.progress=false"],
+            "output_dir": str(output_dir)}
+    spec_path, result_path = output_dir / "cell.json", output_dir / "result.json"
+    spec_path.write_text(json.dumps(spec, indent=2))
+    result_path.unlink(missing_ok=True)
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads)) if threads > 0 else None
+    with open(output_dir / "bench.log", "a") as log:
+        done = subprocess.run([sys.executable, "-m", "rainyscape.bench.cell", str(spec_path), str(result_path)],
+                              stdout=log, stderr=subprocess.STDOUT, env=env)
+    if done.returncode == 0 and result_path.is_file():
+        return json.loads(result_path.read_text())
+    tail = (output_dir / "bench.log").read_text().strip().splitlines()[-5:]
+    return {"status": "failed", "error": " | ".join(tail) or f"exit code {done.returncode}"}
+
+
+def main(spec_path: str, result_path: str) -> int:
+    """Subprocess entry: ``python -m rainyscape.bench.cell CELL.json RESULT.json``."""
+    spec = json.loads(Path(spec_path).read_text())
+    try:
+        result = run_cell_here(spec)
+    except RainyScapeError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    Path(result_path).write_text(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(*sys.argv[1:3]))

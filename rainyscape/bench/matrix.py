@@ -1,0 +1,61 @@
+"""The cells of a benchmark: every method on every scene, plus the paper's loss ablation."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+
+from rainyscape.errors import ConfigError
+
+# The paper's loss ablation (Table II): variant label -> overrides of the ablated method.
+ABLATIONS: dict[str, list[str]] = {
+    "w/o L_rec": ["losses.reconstruction=none"],
+    "w/o L_tv": ["losses.tv=none"],
+    "w/o L_agr": ["losses.agr=none"],
+    "30 bins": ["losses.agr.bins=30"],
+    "90 bins": ["losses.agr.bins=90"],
+    "full": [],
+}
+
+
+@dataclass
+class Cell:
+    """One training run of the matrix."""
+
+    key: str  # "<scene>/<method>" or "ablation/<scene>/<variant>"
+    scene: str  # the scene's label in the tables
+    data: str  # scene folder ("" = the embedded demo)
+    method: str
+    overrides: list[str] = field(default_factory=list)
+    label: str = ""  # row label (the method, or the ablation variant)
+
+    def fingerprint(self) -> str:
+        """What makes two cells the same experiment (a changed budget reruns the cell)."""
+        text = json.dumps([self.data, self.method, sorted(self.overrides)])
+        return hashlib.sha1(text.encode()).hexdigest()[:12]
+
+    @property
+    def folder_name(self) -> str:
+        return self.key.replace("/", "__").replace(" ", "_")
+
+
+def build_cells(methods: list[str], scenes: list[tuple[str, str]], overrides: list[str],
+                ablation: tuple[str, str] | None = None, ablation_method: str = "rainyscape-nerf") -> list[Cell]:
+    cells = [Cell(f"{label}/{m}", label, data, m, list(overrides), m) for label, data in scenes for m in methods]
+    if ablation is not None:
+        label, data = ablation
+        cells += [Cell(f"ablation/{label}/{variant}", label, data, ablation_method,
+                       list(overrides) + extra, variant) for variant, extra in ABLATIONS.items()]
+    return cells
+
+
+def validate_cells(cells: list[Cell]) -> None:
+    """Every cell's config must build before anything trains (typos fail at once)."""
+    from rainyscape.config import method_config
+
+    for cell in cells:
+        try:
+            method_config(cell.method, [f"data={cell.data}", *cell.overrides])
+        except ConfigError as exc:
+            raise ConfigError(f"{cell.key.strip('/')}: {exc}") from None

@@ -1,0 +1,26 @@
+"""What ``rs-bench`` takes (``key=value``); plain data, so ``rs-bench --help`` stays light.
+Each field's ``help`` metadata is the line ``rs-bench --help`` shows for it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+ALL_METHODS = "nerf,robust-nerf,rainyscape-nerf,3dgs,robust-3dgs,rainyscape-3dgs"
+
+
+@dataclass
+class BenchOptions:
+    methods: str = field(default=ALL_METHODS, metadata={"help": "comma-separated methods"})
+    scenes: str = field(default="demo", metadata={"help": "comma-separated simulator presets or scene folders"})
+    iters: int = field(default=0, metadata={"help": "trainer.max_iters of every cell (0: each method's own)"})
+    out: str = field(default="benchmarks/results", metadata={"help": "results folder"})
+    name: str = field(default="", metadata={"help": "results file name (default: today's date)"})
+    device: str = field(default="auto", metadata={"help": "auto | cpu | cuda"})
+    ablation: str = field(default="", metadata={"help": "a scene for the loss ablation table (default: none)"})
+    ablation_method: str = field(default="rainyscape-nerf", metadata={"help": "the method the ablation varies"})
+    scene_width: int = field(default=0, metadata={"help": "simulated scenes: image width (0: the preset's)"})
+    scene_rows: int = field(default=0, metadata={"help": "simulated scenes: camera rows (0: the preset's)"})
+    scene_cols: int = field(default=0, metadata={"help": "simulated scenes: camera columns (0: the preset's)"})
+    jobs: int = field(default=1, metadata={"help": "cells trained at the same time"})
+    threads: int = field(default=0, metadata={"help": "torch threads per cell (0: torch's default, "
+                                                      "or cores / jobs when jobs > 1)"})

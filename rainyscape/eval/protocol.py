@@ -1,0 +1,111 @@
+"""The evaluation protocol (DESIGN.md): rainy-input floor, de-raining on training views
+(with and without post-processing) and novel held-out views; PSNR, SSIM, LPIPS (when its
+weights are on this machine), the predicted rain angle and, for simulated scenes, how well
+the predicted rain layer correlates with the true one.
+
+``metrics.json`` keys (``summary``; every value a mean over views):
+  rainy_input_{psnr,ssim,lpips}   rainy training inputs vs clean: the floor to beat
+  train_{psnr,ssim,lpips}         renders at training views vs clean (the paper's numbers)
+  train_<pp>_{psnr,ssim,lpips}    the same after post-process <pp> (the config's key)
+  heldout_{psnr,ssim,lpips}       renders at held-out views vs clean (novel views)
+  {train,heldout}_psnr_vs_rainy   renders vs the rainy images (how much rain was fitted)
+  rain_angle_deg, rain_angle_true_deg, rain_angle_error_deg, rain_correlation
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from rainyscape.engine.pipeline import Pipeline
+from rainyscape.eval.images import save_strip
+from rainyscape.eval.perceptual import LpipsMetric, load_lpips
+from rainyscape.eval.rain_stats import angle_options, view_rain_stats
+from rainyscape.eval.report import write_report
+from rainyscape.eval.summary import summarize
+from rainyscape.eval.views import ViewImages, progress, view_images
+from rainyscape.imaging.metrics import psnr, ssim
+
+STRIP_VIEWS = 3  # training views whose comparison strips evaluation saves for the report
+
+
+def image_metrics(pred: Tensor, target: Tensor, lpips: LpipsMetric) -> dict[str, float]:
+    """PSNR, SSIM (and LPIPS when available) of two (3, H, W) images."""
+    out = {"psnr": float(psnr(pred, target)), "ssim": float(ssim(pred[None], target[None]))}
+    if lpips.available:
+        out["lpips"] = float(lpips.fn(pred[None], target[None])[0])
+    return out
+
+
+def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict) -> dict:
+    """One view's row of ``per_view``: its images against the clean and the rainy ones, and
+    its rain statistics."""
+    row: dict = {"view": v.name, "split": v.split,
+                 "psnr_vs_rainy": float(psnr(v.rendered, v.rainy))}
+    if v.clean is not None:
+        row.update(image_metrics(v.rendered, v.clean, lpips))
+        if v.split == "train":
+            row.update({f"rainy_input_{k}": x for k, x in image_metrics(v.rainy, v.clean, lpips).items()})
+            for key, img in v.post.items():
+                row.update({f"{key}_{k}": x for k, x in image_metrics(img, v.clean, lpips).items()})
+    row.update(view_rain_stats(v, angle_opts))
+    return row
+
+
+def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: int = 0
+                   ) -> tuple[list[dict], list[ViewImages]]:
+    """Per-view metrics of every view, and the images of the first ``keep`` training views."""
+    lpips = lpips or load_lpips(pipeline.device)
+    options = angle_options(pipeline)
+    scene = pipeline.scene
+    rows, kept = [], []
+    for i in progress(list(scene.train_indices) + list(scene.eval_indices), "evaluating views"):
+        v = view_images(pipeline, i)
+        rows.append(view_metrics(v, lpips, options))
+        if v.split == "train" and len(kept) < keep:
+            kept.append(v)
+    return rows, kept
+
+
+@torch.no_grad()
+def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None) -> dict:
+    """The whole protocol on a trained pipeline; with ``run_dir`` it also saves the comparison
+    strips of a few training views under ``run_dir/renders/strips`` (used by the report)."""
+    lpips = load_lpips(pipeline.device)
+    rows, kept = evaluate_views(pipeline, lpips, keep=STRIP_VIEWS if run_dir is not None else 0)
+    for v in kept:
+        save_strip(v, Path(run_dir) / "renders" / "strips" / f"{Path(v.name).stem}.png")
+    scene = pipeline.scene
+    return {
+        "scene": scene.name,
+        "method": pipeline.config.method,
+        "has_clean": scene.clean_images is not None,
+        "has_rain_head": pipeline.rain_head is not None,
+        "postprocess": list(pipeline.postprocess),
+        "views": {"train": len(scene.train_indices), "heldout": len(scene.eval_indices),
+                  "width": scene.width, "height": scene.height},
+        "lpips": lpips.describe(),
+        "summary": summarize(rows),
+        "per_view": rows,
+    }
+
+
+def write_metrics(run_dir: Path, metrics: dict) -> Path:
+    """Write ``metrics.json`` atomically, then the run's ``report.html`` presenting it.
+
+    A report that cannot be written is reported on stderr and does not fail the run (the
+    metrics are safe; ``rs-eval RUN_DIR`` rebuilds it)."""
+    path = Path(run_dir) / "metrics.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(metrics, indent=2))
+    tmp.replace(path)
+    try:
+        write_report(run_dir)
+    except Exception as exc:  # the report is a view of the metrics; never lose a run over it
+        print(f"rainyscape: warning: could not write {Path(run_dir) / 'report.html'}: "
+              f"{type(exc).__name__}: {exc}", file=sys.stderr)
+    return path

@@ -1,0 +1,62 @@
+"""Rain statistics of a view: the streak directions of predicted rain, of the residual I - B
+and of the true rain (measured as the run's AGR loss measures them), and how well the predicted
+rain layer correlates with the true one."""
+
+from __future__ import annotations
+
+import math
+
+from torch import Tensor
+
+from rainyscape.engine.pipeline import Pipeline
+from rainyscape.eval.views import ViewImages
+from rainyscape.imaging.angles import estimate_rain_angles, streak_angle
+
+
+def angle_options(pipeline: Pipeline) -> dict:
+    """Histogram settings of the run's AGR term (``k``: its rain directions per image), so
+    evaluation measures angles as training did."""
+    for cfg, _ in pipeline.losses.values():
+        if cfg.name == "agr":
+            o = cfg.options
+            return {"bins": o.bins, "threshold": o.threshold, "smoothing": o.smoothing,
+                    "kernel": o.kernel, "k": int(o.top_k)}
+    return {}
+
+
+def streak_angles_deg(image: Tensor, options: dict) -> list[float]:
+    """Directions the dominant streaks run along (``options["k"]`` of them, strongest first),
+    degrees in [0, 180) from the image +x axis towards +y (down), estimated as the AGR loss
+    does; empty if the image has no edges."""
+    theta, valid = estimate_rain_angles(image[None], **{"k": 1, **options})
+    return [math.degrees(float(streak_angle(t))) for t, ok in zip(theta[0], valid[0]) if bool(ok)]
+
+
+def streak_angle_deg(image: Tensor, options: dict) -> float | None:
+    """The dominant streak direction (see :func:`streak_angles_deg`), or None."""
+    angles = streak_angles_deg(image, {**options, "k": 1})
+    return angles[0] if angles else None
+
+
+def correlation(a: Tensor, b: Tensor) -> float | None:
+    """Pearson correlation of two images' grey levels (None when either is constant)."""
+    x, y = a.double().mean(0).flatten(), b.double().mean(0).flatten()
+    x, y = x - x.mean(), y - y.mean()
+    den = float(x.norm() * y.norm())
+    return float((x * y).sum()) / den if den > 0 else None
+
+
+def view_rain_stats(v: ViewImages, options: dict) -> dict:
+    """The rain keys of a view's metrics row (empty for views without predicted or true rain)."""
+    row: dict = {}
+    if v.rain is not None:
+        angles = streak_angles_deg(v.rain, options)  # strongest first
+        row["rain_angle_deg"] = angles[0] if angles else None
+        if options.get("k", 1) > 1:  # multi-direction rain: every direction the AGR term uses
+            row["rain_angles_deg"] = angles
+        row["residual_angle_deg"] = streak_angle_deg(v.rainy - v.rendered, options)
+        if v.true_rain is not None:
+            row["rain_correlation"] = correlation(v.rain, v.true_rain)
+    if v.true_rain is not None and v.split == "train":
+        row["rain_angle_true_deg"] = streak_angle_deg(v.true_rain, options)
+    return row

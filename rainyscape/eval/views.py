@@ -1,0 +1,119 @@
+"""One view of a trained pipeline: its render, its predicted rain (tile by tile), the bundle of
+images evaluation and renders use, and the quick PSNR check the trainer logs during training."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from typing import Iterable
+
+import torch
+from torch import Tensor
+
+from rainyscape.cameras import Cameras, Window
+from rainyscape.components import RenderOutput
+from rainyscape.engine.pipeline import Pipeline
+from rainyscape.eval.summary import mean_of
+from rainyscape.imaging.metrics import psnr
+
+
+def progress(items: list, what: str, unit: str = "view") -> Iterable:
+    """A console progress bar over ``items`` (only when stderr is a terminal)."""
+    from tqdm import tqdm
+
+    return tqdm(items, desc=what, unit=unit, file=sys.stderr, disable=None, leave=False)
+
+
+def to_float(u8: Tensor, device) -> Tensor:
+    """uint8 (H, W, 3) -> float (3, H, W) in [0, 1]."""
+    return u8.to(device).permute(2, 0, 1).float() / 255.0
+
+
+@torch.no_grad()
+def render_cameras(pipeline: Pipeline, cameras: Cameras) -> RenderOutput:
+    """Full-resolution render of one camera (fields chunk rays, so memory stays bounded)."""
+    pipeline.field.eval()
+    cams = cameras.to(pipeline.device)
+    return pipeline.field.render(cams, Window.full(cams))
+
+
+def render_view(pipeline: Pipeline, index: int) -> RenderOutput:
+    return render_cameras(pipeline, pipeline.scene.cameras[[index]])
+
+
+def render_image(pipeline: Pipeline, index: int) -> Tensor:
+    """Full-resolution render (3, H, W) of view ``index``."""
+    return render_view(pipeline, index).rgb[0].clamp(0, 1)
+
+
+@torch.no_grad()
+def predict_rain(pipeline: Pipeline, index: int, tile: int = 128) -> Tensor:
+    """Predicted rain layer (3, H, W) of view ``index``, computed tile by tile (bounded memory)."""
+    head = pipeline.rain_head
+    head.eval()
+    h, w = pipeline.scene.height, pipeline.scene.width
+    out = torch.zeros(3, h, w, device=pipeline.device)
+    ids = torch.tensor([index], device=pipeline.device)
+    for y in range(0, h, tile):
+        for x in range(0, w, tile):
+            th, tw = min(tile, h - y), min(tile, w - x)
+            win = Window(torch.tensor([x]), torch.tensor([y]), tw, th)
+            out[:, y:y + th, x:x + tw] = head(ids, win)[0]
+    return out
+
+
+@dataclass
+class ViewImages:
+    """Everything evaluation and renders need for one view, (3, H, W) floats."""
+
+    index: int
+    name: str
+    split: str  # "train" | "heldout"
+    rainy: Tensor
+    rendered: Tensor
+    depth: Tensor | None  # (1, H, W)
+    clean: Tensor | None = None
+    rain: Tensor | None = None  # predicted rain layer (training views with a rain head)
+    true_rain: Tensor | None = None
+    post: dict[str, Tensor] = field(default_factory=dict)  # post-processed renders by key
+
+
+@torch.no_grad()
+def view_images(pipeline: Pipeline, index: int) -> ViewImages:
+    scene, dev = pipeline.scene, pipeline.device
+    split = "train" if index in set(scene.train_indices) else "heldout"
+    out = render_view(pipeline, index)
+    v = ViewImages(index, scene.image_names[index], split, to_float(scene.images[index], dev),
+                   out.rgb[0].clamp(0, 1), None if out.depth is None else out.depth[0])
+    if scene.clean_images is not None:
+        v.clean = to_float(scene.clean_images[index], dev)
+    if scene.rain_layers is not None:
+        v.true_rain = scene.rain_layers[index].to(dev).permute(2, 0, 1).float()
+    if split == "train" and pipeline.rain_head is not None:
+        v.rain = predict_rain(pipeline, index)
+        for key, post in pipeline.postprocess.items():
+            v.post[key] = post(v.rendered, v.rain, v.rainy).clamp(0, 1)
+    return v
+
+
+@torch.no_grad()
+def quick_eval(pipeline: Pipeline, views: int) -> dict:
+    """PSNR of the first ``views`` training and held-out renders vs the rainy and the clean
+    images (the paper's Fig. 2 curves): ``{train,heldout}_psnr_{rainy,clean}``, the clean
+    ones only when the scene has clean images, a split without views left out."""
+    scene, dev = pipeline.scene, pipeline.device
+    out: dict[str, float] = {}
+    for split, indices in (("train", scene.train_indices), ("heldout", scene.eval_indices)):
+        picked = indices[:views]
+        if not picked:
+            continue
+        clean_vals, rainy_vals = [], []
+        for i in picked:
+            rgb = render_image(pipeline, i)
+            rainy_vals.append(float(psnr(rgb, to_float(scene.images[i], dev))))
+            if scene.clean_images is not None:
+                clean_vals.append(float(psnr(rgb, to_float(scene.clean_images[i], dev))))
+        out[f"{split}_psnr_rainy"] = mean_of(rainy_vals)
+        if clean_vals:
+            out[f"{split}_psnr_clean"] = mean_of(clean_vals)
+    return out
