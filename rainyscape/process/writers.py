@@ -12,23 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from rainyscape.formats.ply import write_ply
 from rainyscape.process.colmap_model import (colmap_c2w, model_points, pinhole_intrinsics,
                                              posed_images)
-
-
-def write_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
-    """Binary little-endian PLY with float x, y, z and uchar red, green, blue."""
-    rows = np.zeros(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                     ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    rows["x"], rows["y"], rows["z"] = xyz.T
-    rows["red"], rows["green"], rows["blue"] = rgb.T
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {len(xyz)}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(rows.tobytes())
 
 
 def transforms_json(model, image_prefix: str = "images", ply_name: str | None = "sparse_pc.ply") -> dict:
@@ -58,6 +44,8 @@ def transforms_json(model, image_prefix: str = "images", ply_name: str | None = 
 def write_nerfstudio_files(model, scene_dir: Path) -> None:
     """``transforms.json`` and ``sparse_pc.ply`` in the scene folder."""
     xyz, rgb = model_points(model)
-    write_ply(scene_dir / "sparse_pc.ply", xyz, rgb)
+    write_ply(scene_dir / "sparse_pc.ply", {"x": xyz[:, 0].astype(np.float32), "y": xyz[:, 1].astype(np.float32),
+                                            "z": xyz[:, 2].astype(np.float32), "red": rgb[:, 0],
+                                            "green": rgb[:, 1], "blue": rgb[:, 2]})
     content = transforms_json(model)
     (scene_dir / "transforms.json").write_text(json.dumps(content, indent=2))
