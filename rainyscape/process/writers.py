@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from rainyscape.dataparsers.colmap_model import (colmap_c2w, model_points, pinhole_intrinsics,
+                                                 posed_images)
 from rainyscape.formats.ply import write_ply
-from rainyscape.process.colmap_model import (colmap_c2w, model_points, pinhole_intrinsics,
-                                             posed_images)
 
 
 def transforms_json(model, image_prefix: str = "images", ply_name: str | None = "sparse_pc.ply") -> dict:
