@@ -96,18 +96,26 @@ def _write_png(path: Path, rgb: np.ndarray) -> None:
     iio.imwrite(path, rgb)  # PNG through pillow: no EXIF block is written
 
 
-def extract_video_frames(video: Path, out_dir: Path, options: FrameOptions,
-                         progress: bool = True) -> list[Frame]:
-    """Write the sharpest frame of each window of the clip as ``frame_00001.png`` ..."""
-    import imageio_ffmpeg
-    from tqdm import tqdm
-
-    check_crop(options.crop)
+def check_video(video: Path) -> int:
+    """The clip's frame count, after checking it is a readable video with enough frames
+    (DataError naming the file otherwise). Reads the file only."""
     total = count_video_frames(video)
     if total == 0:
         raise DataError(f"{video}: the video has no frames")
     if total < MIN_VIEWS:
         raise DataError(f"{video}: too few frames ({total}); SfM needs at least {MIN_VIEWS} views")
+    return total
+
+
+def extract_video_frames(video: Path, out_dir: Path, options: FrameOptions,
+                         progress: bool = True, total: int | None = None) -> list[Frame]:
+    """Write the sharpest frame of each window of the clip as ``frame_00001.png`` ...
+    (``total``: the frame count :func:`check_video` returned, to skip counting again)."""
+    import imageio_ffmpeg
+    from tqdm import tqdm
+
+    check_crop(options.crop)
+    total = total or check_video(video)
     windows = frame_windows(total, options.num_frames)
     best: dict[int, tuple[float, int, np.ndarray]] = {}
     reader = imageio_ffmpeg.read_frames(str(video))
@@ -143,6 +151,8 @@ def extract_video_frames(video: Path, out_dir: Path, options: FrameOptions,
 
 
 def list_photos(folder: Path) -> list[Path]:
+    """The photos of ``folder`` in natural order, after checking there are enough of them and
+    no two share a name (DataError naming the folder otherwise). Reads the listing only."""
     if not folder.is_dir():
         raise DataError(f"{folder}: no such folder")
     files = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
@@ -151,6 +161,11 @@ def list_photos(folder: Path) -> list[Path]:
         raise DataError(f"{folder}: no images found (looked for {', '.join(IMAGE_SUFFIXES)})")
     if len(files) < MIN_VIEWS:
         raise DataError(f"{folder}: too few images ({len(files)}); SfM needs at least {MIN_VIEWS} views")
+    stems = [p.stem for p in files]
+    duplicates = sorted({s for s in stems if stems.count(s) > 1})
+    if duplicates:
+        raise DataError(f"{folder}: several images share the name '{duplicates[0]}' "
+                        "(different extensions); rename them")
     return files
 
 
@@ -180,11 +195,6 @@ def copy_photos(folder: Path, out_dir: Path, options: FrameOptions, progress: bo
 
     check_crop(options.crop)
     files = list_photos(folder)
-    stems = [p.stem for p in files]
-    duplicates = sorted({s for s in stems if stems.count(s) > 1})
-    if duplicates:
-        raise DataError(f"{folder}: several images share the name '{duplicates[0]}' "
-                        "(different extensions); rename them")
     out_dir.mkdir(parents=True, exist_ok=True)
     frames, sizes = [], {}
     for path in tqdm(files, desc="reading photos", unit="image", disable=not progress):
