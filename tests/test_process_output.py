@@ -124,6 +124,16 @@ def test_an_output_folder_holding_the_input_is_refused(tmp_path, capsys):
     assert snapshot(tmp_path) == before
 
 
+def test_an_output_that_cannot_be_written_is_one_line(tmp_path, capsys):
+    photos = noise_photos(tmp_path / "photos")
+    (tmp_path / "a_file").write_text("mine\n")
+    before = snapshot(tmp_path)
+    for out in (tmp_path / "a_file", tmp_path / "a_file" / "scene"):
+        code, err = cli(["images", "--data", str(photos), "--output-dir", str(out)], capsys)
+        assert code == 2 and len(err) == 1 and err[0].startswith(f"error: {out}: ")
+    assert snapshot(tmp_path) == before
+
+
 def test_a_failure_half_way_through_sfm_leaves_the_output_as_it_was(tmp_path, capsys):
     photos = noise_photos(tmp_path / "photos")
     out = tmp_path / "P"

@@ -109,17 +109,21 @@ def staged_scene(source: Path, scene_dir: Path, overwrite: bool) -> Iterator[Pat
     folder (and any parent folder made for it) is removed in every case."""
     check_output(source, scene_dir, overwrite)
     out = scene_dir.resolve()
-    made = _make_parents(out.parent)
-    staging = _new_staging(out)
+    made: list[Path] = []
+    try:
+        made = _make_parents(out.parent)
+        staging = _new_staging(out)
+    except OSError as exc:
+        _remove_empty(made)
+        raise DataError(f"{scene_dir}: cannot write beside the output folder "
+                        f"({exc.strerror or exc})") from None
     try:
         yield staging
         _publish(staging, out, scene_dir, overwrite)
         made = []
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-        for folder in reversed(made):
-            with contextlib.suppress(OSError):
-                folder.rmdir()
+        _remove_empty(made)
 
 
 def _make_parents(folder: Path) -> list[Path]:
@@ -128,9 +132,22 @@ def _make_parents(folder: Path) -> list[Path]:
     while not folder.exists():
         missing.append(folder)
         folder = folder.parent
+    made = []
     for path in reversed(missing):
-        path.mkdir()
-    return list(reversed(missing))
+        try:
+            path.mkdir()
+        except OSError:
+            _remove_empty(made)
+            raise
+        made.append(path)
+    return made
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove the folders :func:`_make_parents` made (innermost first) while they are empty."""
+    for folder in reversed(folders):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
 
 
 def _new_staging(out: Path) -> Path:
