@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rainyscape.dataparsers.images import IMAGE_SUFFIXES, natural_key
+from rainyscape.dataparsers.images import IMAGE_SUFFIXES, natural_key, write_png
 from rainyscape.errors import DataError
 
 MIN_VIEWS = 2  # two-view geometry is the least SfM can start from
@@ -90,12 +90,6 @@ def count_video_frames(path: Path) -> int:
     return int(frames or 0)
 
 
-def _write_png(path: Path, rgb: np.ndarray) -> None:
-    import imageio.v3 as iio
-
-    iio.imwrite(path, rgb)  # PNG through pillow: no EXIF block is written
-
-
 def check_video(video: Path) -> int:
     """The clip's frame count, after checking it is a readable video with enough frames
     (DataError naming the file otherwise). Reads the file only."""
@@ -145,7 +139,7 @@ def extract_video_frames(video: Path, out_dir: Path, options: FrameOptions,
     for k, window in enumerate(sorted(best)):
         score, index, rgb = best[window]
         name = f"frame_{k + 1:05d}.png"
-        _write_png(out_dir / name, rgb)
+        write_png(out_dir / name, rgb)  # PNG: no EXIF block
         frames.append(Frame(name, str(index), score))
     return frames
 
@@ -201,7 +195,7 @@ def copy_photos(folder: Path, out_dir: Path, options: FrameOptions, progress: bo
         rgb = prepare_frame(read_photo(path), options)
         sizes.setdefault(rgb.shape[:2], path.name)
         name = f"{path.stem}.png"
-        _write_png(out_dir / name, rgb)
+        write_png(out_dir / name, rgb)  # PNG: no EXIF block
         frames.append(Frame(name, path.name, laplacian_variance(rgb)))
     if len(sizes) > 1:
         shown = ", ".join(f"{n} is {w}x{h}" for (h, w), n in sizes.items())
