@@ -43,7 +43,7 @@ class ProcessArgs:
                                           "e.g. to 4, for narrow baselines such as a stereo pair)")
     num_threads: int = opt(-1, "CPU threads (-1: all)")
     seed: int = opt(0, "random seed")
-    overwrite: bool = opt(False, "replace a scene already processed in the output folder")
+    overwrite: bool = opt(False, "replace the scene rs-process-data wrote in the output folder; other files are kept")
     quiet: bool = opt(False, "no progress output")
     verbose: bool = opt(False, "show COLMAP's own log")
 

@@ -9,7 +9,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -17,6 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rainyscape.dataparsers.transforms_json import write_transforms
 from rainyscape.dataparsers.writers import transforms_meta
 from rainyscape.components import DensityField, PlyExportable
 from rainyscape.engine.pipeline import Pipeline
@@ -119,6 +119,5 @@ def export_cameras(pipeline: Pipeline, out_dir: Path, images: bool = True) -> di
         for i, name in enumerate(names):
             save_png(out_dir / name, to_uint8(render_image(pipeline, i)))
     out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / "transforms.json"
-    path.write_text(json.dumps(transforms_meta(scene, names), indent=2))
+    path = write_transforms(out_dir / "transforms.json", transforms_meta(scene, names))
     return {"transforms": str(path), "images": len(names) if images else 0}

@@ -114,11 +114,12 @@ def strip_panels(v: "ViewImages") -> list[tuple[str, np.ndarray]]:
 
 
 def save_png(path: Path, image: np.ndarray) -> Path:
-    import imageio.v3 as iio
+    """Write a uint8 picture, making its folder."""
+    from rainyscape.dataparsers.images import write_png
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, image)
+    write_png(path, image)
     return path
 
 
