@@ -157,6 +157,7 @@ class LossContext:
     view_ids: Tensor
     step: int
     phase: str
+    window: Window | None = None  # which pixels of the views the batch holds
 
     @property
     def rain(self) -> Tensor | None:
@@ -182,6 +183,9 @@ class Loss:
 
     def __call__(self, ctx: LossContext) -> Tensor:
         raise NotImplementedError  # abstract
+
+    def setup(self, scene: SceneData, device: torch.device) -> None:
+        """Called once the pipeline is built; terms that look at other views keep what they need."""
 
     def state_dict(self) -> dict:
         return {}

@@ -71,6 +71,8 @@ def build_pipeline(config: PipelineConfig, scene: SceneData, device: torch.devic
              for key, comp in config.heads().items()}
     losses = {key: (cfg, registry.load("loss", cfg.name)(cfg.options)) for key, cfg in config.losses.items()}
     _check_layers(config, heads, losses)
+    for _, term in losses.values():
+        term.setup(scene, device)
     post = {k: registry.load("postprocess", p.name)(p.options) for k, p in config.postprocess.items()}
     return Pipeline(config, scene, field, heads, losses, post, device)
 

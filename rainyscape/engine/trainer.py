@@ -20,7 +20,8 @@ import torch
 from torch import Tensor
 
 from rainyscape.cameras import Window
-from rainyscape.components import Energy, LatentModel, LossContext, ParamGroup, TrainState
+from rainyscape.components import (Energy, LatentModel, LossContext, ParamGroup, RenderOutput,
+                                   TrainState)
 from rainyscape.config import PhaseConfig
 from rainyscape.engine import snapshot
 from rainyscape.engine.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
@@ -30,6 +31,15 @@ from rainyscape.engine.progress import ProgressBar
 from rainyscape.engine.sampling import gather_pixels, sample_windows
 from rainyscape.errors import DataError
 from rainyscape.imaging.metrics import psnr
+
+
+def crop_output(output: RenderOutput | None, local: Window) -> RenderOutput | None:
+    """The render's images cut to a sub-window (field-specific extras do not follow)."""
+    if output is None:
+        return None
+    cut = {k: None if v is None else local.crop(v) for k, v in
+           (("rgb", output.rgb), ("depth", output.depth), ("acc", output.acc))}
+    return RenderOutput(**cut)
 
 
 def seed_everything(seed: int) -> None:
@@ -111,7 +121,7 @@ class Trainer:
         for head in heads:
             head.train()
             layers[head.layer] = head(view_ids.to(self.device), window)
-        ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name)
+        ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window)
         terms = self.p.loss_terms(name)
         total, values = compute_losses(terms, ctx)
         # the field's own losses fit what the layers leave of the input
@@ -151,7 +161,8 @@ class Trainer:
             if (sub.width, sub.height) != (window.width, window.height):
                 local = sub.relative_to(window)
                 c = replace(base, rendered=local.crop(base.rendered), target=local.crop(base.target),
-                            layers={k: local.crop(v) for k, v in base.layers.items()})
+                            layers={k: local.crop(v) for k, v in base.layers.items()},
+                            output=crop_output(base.output, local), window=sub)
             c = replace(c, layers={**c.layers, layer: prediction})
             return compute_losses(terms, c)[0]
 

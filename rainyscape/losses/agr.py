@@ -26,20 +26,24 @@ from rainyscape.imaging.gradients import GRADIENT_KERNELS, image_gradients, stee
 from rainyscape.imaging.angles import estimate_rain_angles, streak_angle
 
 
-def mean_abs_derivative(images: Tensor, theta: Tensor, kernel: str = "scharr") -> Tensor:
-    """mean |D_theta images| for every image and direction: (B, C, h, w), (B, K) -> (B, K)."""
+def mean_abs_derivative(images: Tensor, theta: Tensor, kernel: str = "scharr", gain: float = 1.0) -> Tensor:
+    """mean |D_theta images| for every image and direction: (B, C, h, w), (B, K) -> (B, K).
+
+    ``gain`` 1 keeps the 3x3 kernel's Sobel gain (a unit step gives 4), the units of the
+    angle threshold; 1/8 gives grey levels per pixel."""
     gx, gy = image_gradients(images, kernel)
-    d = steer(gx.unsqueeze(1), gy.unsqueeze(1), theta) / 8.0  # (B, K, C, h-2, w-2)
+    d = steer(gx.unsqueeze(1), gy.unsqueeze(1), theta) * gain  # (B, K, C, h-2, w-2)
     return d.abs().mean(dim=(2, 3, 4))
 
 
 def agr_loss(rendered: Tensor, target: Tensor, rain: Tensor, theta: Tensor, valid: Tensor,
-             background_weight: float = 0.5, kernel: str = "scharr") -> Tensor:
+             background_weight: float = 0.5, kernel: str = "scharr", gain: float = 1.0) -> Tensor:
     """The AGR loss for directions ``theta`` (B, K) (gradient directions, across streaks),
     averaged over the valid (image, direction) pairs; 0 when none is valid."""
-    across = mean_abs_derivative(rain, theta, kernel)
-    along = mean_abs_derivative(rain, theta + math.pi / 2, kernel)
-    scene = mean_abs_derivative(rendered, theta, kernel) + mean_abs_derivative(target - rain, theta, kernel)
+    across = mean_abs_derivative(rain, theta, kernel, gain)
+    along = mean_abs_derivative(rain, theta + math.pi / 2, kernel, gain)
+    scene = (mean_abs_derivative(rendered, theta, kernel, gain)
+             + mean_abs_derivative(target - rain, theta, kernel, gain))
     per_direction = along - across + background_weight * scene  # (B, K)
     weights = valid.to(per_direction.dtype)
     return (per_direction * weights).sum() / weights.sum().clamp_min(1.0)
@@ -60,6 +64,7 @@ class AdaptiveGradientRotation(Loss):
         smoothing: int = 2  # [1, 2, 1] passes over the histogram before peak picking (0: raw)
         background_weight: float = 0.5  # w above: 0.5 as the authors' code, 1 as the paper's equation
         kernel: str = "scharr"  # derivative kernel: scharr | sobel
+        gain: float = 0.125  # derivative scale: 1 the kernel's Sobel gain (the paper's operator), 1/8 per pixel
 
     def __init__(self, config: "AdaptiveGradientRotation.Config | None" = None):
         super().__init__(config or self.Config())
@@ -85,7 +90,7 @@ class AdaptiveGradientRotation(Loss):
         theta, valid = self.estimate(ctx)
         self._record(ctx.view_ids, theta, valid)
         return agr_loss(ctx.rendered, ctx.target, rain, theta, valid,
-                        self.config.background_weight, self.config.kernel)
+                        self.config.background_weight, self.config.kernel, self.config.gain)
 
     def _record(self, view_ids: Tensor, theta: Tensor, valid: Tensor) -> None:
         streaks = torch.rad2deg(streak_angle(theta)).tolist()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor
 
 from rainyscape.components import Loss, LossContext
@@ -28,6 +29,10 @@ class L1SSIM(Loss):
         ssim_weight: float = 0.2  # w: the D-SSIM share (3DGS's lambda_dssim)
         with_rain: bool = False  # compare B + R with I when a rain map is present
         render_l1: bool = False  # add (1 - w) L1(B, I) to the B + R terms (authors' 3DGS code)
+        # 0: that L1(B, I) anchor everywhere (the authors'); s > 0: weighted exp(-(R / s)^2),
+        # letting B go below I where rain is predicted (the two L1 terms cancel for
+        # I - R < B < I, a dead band that keeps the rain in B)
+        anchor_scale: float = 0.0
 
     def __init__(self, config: "L1SSIM.Config | None" = None):
         super().__init__(config or self.Config())
@@ -46,5 +51,9 @@ class L1SSIM(Loss):
             loss = loss + w * (1.0 - s)
             self.metrics["ssim"] = float(s.detach())
         if use_rain and self.config.render_l1:
-            loss = loss + (1.0 - w) * (ctx.rendered - ctx.target).abs().mean()
+            anchor = (ctx.rendered - ctx.target).abs()
+            if self.config.anchor_scale > 0:
+                rain = ctx.rain.detach().mean(1, keepdim=True)
+                anchor = anchor * torch.exp(-(rain / self.config.anchor_scale) ** 2)
+            loss = loss + (1.0 - w) * anchor.mean()
         return loss

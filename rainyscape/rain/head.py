@@ -77,6 +77,7 @@ class RainPredictor(RainHead):
         latent_steps: int = 5
         latent_noise_steps: int = 2
         langevin_step: float = 0.03  # d
+        langevin_noise: float = 1.0  # the noise's scale (1: d N(0, 1), the paper's)
         langevin_prior_var: float = 50.0
         latent_patch_size: int = 0  # latent steps on a random crop of the step's window (0: all of it)
 
@@ -134,7 +135,8 @@ class RainPredictor(RainHead):
                        generator: torch.Generator) -> None:
         c = self.config
         langevin_update(self.latents(), self, view_ids, window, energy, generator, c.latent_steps,
-                        c.latent_noise_steps, c.langevin_step, c.langevin_prior_var, c.latent_patch_size)
+                        c.latent_noise_steps, c.langevin_step, c.langevin_prior_var, c.latent_patch_size,
+                        c.langevin_noise)
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config

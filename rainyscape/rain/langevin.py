@@ -11,8 +11,9 @@ from rainyscape.components import Energy
 
 @torch.no_grad()
 def langevin_step(latents: list[Tensor], grads: list[Tensor | None], step: float,
-                  prior_var: float, noise: bool, generator: torch.Generator | None = None) -> None:
-    """In place: x <- x - step^2 / 2 * (grad E(x) + x / prior_var) [+ step * N(0, 1)].
+                  prior_var: float, noise: bool, generator: torch.Generator | None = None,
+                  noise_scale: float = 1.0) -> None:
+    """In place: x <- x - step^2 / 2 * (grad E(x) + x / prior_var) [+ noise_scale * step * N(0, 1)].
 
     The x / prior_var term is the gradient of a N(0, prior_var) prior, so with no data
     gradient the latents shrink towards 0 and the noise keeps them spread (step 0.03 and
@@ -23,12 +24,12 @@ def langevin_step(latents: list[Tensor], grads: list[Tensor | None], step: float
         x.sub_(0.5 * step * step * drift)
         if noise:
             n = torch.randn(x.shape, generator=generator, device="cpu", dtype=x.dtype)
-            x.add_(step * n.to(x.device))
+            x.add_(noise_scale * step * n.to(x.device))
 
 
 def langevin_update(latents: list[Tensor], predict, view_ids: Tensor, window: Window, energy: Energy,
                     generator: torch.Generator, steps: int, noise_steps: int, step: float,
-                    prior_var: float, patch_size: int = 0) -> None:
+                    prior_var: float, patch_size: int = 0, noise_scale: float = 1.0) -> None:
     """``steps`` Langevin steps of ``latents`` on ``energy(window, predict(view_ids, window))``,
     the first ``noise_steps`` with noise; with ``patch_size`` on a random crop of ``window``
     (a whole-view batch would make each step a whole-view prediction)."""
@@ -39,4 +40,5 @@ def langevin_update(latents: list[Tensor], predict, view_ids: Tensor, window: Wi
     for k in range(steps):
         value = energy(window, predict(view_ids, window))
         grads = torch.autograd.grad(value, latents, allow_unused=True)
-        langevin_step(latents, list(grads), step, prior_var, noise=k < noise_steps, generator=generator)
+        langevin_step(latents, list(grads), step, prior_var, noise=k < noise_steps, generator=generator,
+                      noise_scale=noise_scale)

@@ -1,0 +1,114 @@
+"""Loss terms that let other views vote on what is rain (beyond the paper).
+
+- ``mv-photometric`` (the field's): the photometric loss with each pixel weighted by how
+  little rain it shows, judged by the other views (and optionally by the predicted rain):
+  a rain pixel stops pulling the scene, and the scene there is filled in by the views that
+  see it dry.
+- ``mv-rain`` (the rain head's): the predicted rain R should match the multi-view evidence
+  (how much brighter a pixel is than its neighbours' views of the same point).
+
+Both use the field's rendered depth of the batch (detached) and the scene's training views
+(:mod:`rainyscape.losses.multiview_evidence`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from rainyscape.components import Loss, LossContext
+from rainyscape.config.schema import bounded
+from rainyscape.errors import ConfigError
+from rainyscape.imaging.metrics import ssim_map
+from rainyscape.losses.multiview_evidence import (backproject, neighbour_colours, neighbour_table,
+                                                  rain_evidence)
+from rainyscape.scene import SceneData
+
+
+class _Evidence:
+    """The scene's cameras, training images and neighbour table; the evidence of a batch."""
+
+    def __init__(self, scene: SceneData, device: torch.device, views: int, min_views: int):
+        self.cameras = scene.cameras.to(device)
+        self.images = scene.images.to(device).permute(0, 3, 1, 2).float() / 255.0
+        self.neighbours = neighbour_table(self.cameras.centers, list(scene.train_indices), views)
+        self.min_views = min_views
+
+    def __call__(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
+        if ctx.output is None or ctx.output.depth is None or ctx.window is None:
+            raise ConfigError("multi-view rain evidence needs the field's depth and the batch window")
+        depth = ctx.output.depth.detach()
+        views = ctx.view_ids.to(depth.device)
+        points = backproject(self.cameras[views], ctx.window, depth)
+        colours, valid = neighbour_colours(points, self.neighbours[views], self.cameras, self.images)
+        return rain_evidence(ctx.target, colours, valid, self.min_views)
+
+
+class MultiviewPhotometric(Loss):
+    """Photometric loss weighted by how dry each pixel is, as the other views see it."""
+
+    description = "mv-photometric: render vs input, rain pixels (other views' vote) weighted down"
+    phases = ("joint",)
+
+    @dataclass
+    class Config:
+        views: int = bounded(6, 2)  # neighbouring training views that vote
+        min_views: int = bounded(2, 1)  # a pixel with fewer valid votes keeps full weight
+        scale: float = bounded(0.05, 1e-4)  # evidence (grey levels) at which the weight is 1/e
+        use_rain: bool = False  # the predicted rain (detached) lowers the weight too
+        residual: Literal["l2", "l1"] = "l2"
+        ssim_weight: float = bounded(0.0, 0.0, 1.0)  # w: (1 - w) weighted residual + w weighted D-SSIM (3DGS: 0.2)
+
+    def __init__(self, config: "MultiviewPhotometric.Config | None" = None):
+        super().__init__(config or self.Config())
+        self.evidence: _Evidence | None = None
+
+    def setup(self, scene: SceneData, device: torch.device) -> None:
+        c = self.config
+        self.evidence = _Evidence(scene, device, c.views, c.min_views)
+
+    def weights(self, ctx: LossContext) -> Tensor:
+        evidence, _ = self.evidence(ctx)
+        grey = evidence.mean(1, keepdim=True)
+        if self.config.use_rain and ctx.rain is not None:
+            grey = torch.maximum(grey, ctx.rain.detach().mean(1, keepdim=True))
+        return torch.exp(-(grey / self.config.scale) ** 2)
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        c = self.config
+        w = self.weights(ctx)
+        diff = ctx.rendered - ctx.target
+        per_pixel = (diff ** 2 if c.residual == "l2" else diff.abs()).mean(1, keepdim=True)
+        if c.ssim_weight > 0:
+            dssim = 1.0 - ssim_map(ctx.rendered, ctx.target, padding="same").mean(1, keepdim=True)
+            per_pixel = (1.0 - c.ssim_weight) * per_pixel + c.ssim_weight * dssim
+        self.metrics = {"kept": float(w.mean())}
+        return (w * per_pixel).sum() / w.sum().clamp_min(1e-6)
+
+
+class MultiviewRain(Loss):
+    """The predicted rain should be what a pixel shows beyond its neighbours' views."""
+
+    description = "mv-rain: predicted rain vs the multi-view rain evidence"
+    phases = ("joint",)
+    needs = ("rain",)
+
+    @dataclass
+    class Config:
+        views: int = bounded(6, 2)
+        min_views: int = bounded(2, 1)
+
+    def __init__(self, config: "MultiviewRain.Config | None" = None):
+        super().__init__(config or self.Config())
+        self.evidence: _Evidence | None = None
+
+    def setup(self, scene: SceneData, device: torch.device) -> None:
+        self.evidence = _Evidence(scene, device, self.config.views, self.config.min_views)
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        evidence, defined = self.evidence(ctx)
+        mask = defined.to(evidence.dtype)
+        return ((ctx.rain - evidence) ** 2 * mask).sum() / (3 * mask.sum()).clamp_min(1.0)

@@ -1,0 +1,78 @@
+"""Rain evidence from other views: what a pixel shows that its neighbours do not.
+
+Rain streaks are bright, thin and differ from view to view; the scene does not. Every pixel
+of a batch is lifted to 3D with the field's rendered depth, projected into the k nearest
+training views, and compared with the median of what they see there: rain is where the
+pixel is brighter than that median. The median shrugs off a neighbour whose view is
+occluded or rainy itself; no learning is involved, so the evidence is there from the first
+joint step. Pure functions on tensors.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from rainyscape.cameras import Cameras, Window, window_rays
+
+
+def neighbour_table(centers: Tensor, pool: list[int], k: int) -> Tensor:
+    """(N, k') indices into the scene's views: for every view, its k nearest views of
+    ``pool`` by camera centre (never itself); k' = min(k, len(pool) - 1)."""
+    pool_t = torch.as_tensor(pool, dtype=torch.long, device=centers.device)
+    dist = torch.cdist(centers.double(), centers[pool_t].double())  # (N, |pool|)
+    dist[pool_t, torch.arange(len(pool_t), device=centers.device)] = float("inf")  # not itself
+    k = max(0, min(k, len(pool_t) - 1))
+    return pool_t[dist.argsort(dim=1)[:, :k]]
+
+
+def backproject(cameras: Cameras, window: Window, depth: Tensor) -> Tensor:
+    """World points (B, h, w, 3) of the window's pixels at z-depth ``depth`` (B, 1, h, w)."""
+    rays = window_rays(cameras, window)
+    t = depth[:, 0] / rays.z_scale
+    return rays.origins + rays.directions * t[..., None]
+
+
+def neighbour_colours(points: Tensor, neighbours: Tensor, cameras: Cameras, images: Tensor
+                      ) -> tuple[Tensor, Tensor]:
+    """What neighbour views see at ``points``.
+
+    points (B, h, w, 3), neighbours (B, k) view indices, images (N, 3, H, W) float.
+    Returns colours (B, k, 3, h, w) and validity (B, k, h, w): in front of the camera and
+    inside its image."""
+    b, h, w, _ = points.shape
+    k = neighbours.shape[1]
+    height, width = images.shape[-2:]
+    flat = points.reshape(b, 1, h * w, 3)
+    cams = cameras[neighbours.reshape(-1)]
+    w2c = cams.w2c().reshape(b, k, 4, 4)
+    cam = flat @ w2c[..., :3, :3].transpose(-1, -2) + w2c[..., None, :3, 3]  # (B, k, P, 3)
+    z = cam[..., 2]
+    fx, fy = cams.fx.reshape(b, k, 1), cams.fy.reshape(b, k, 1)
+    cx, cy = cams.cx.reshape(b, k, 1), cams.cy.reshape(b, k, 1)
+    safe = z.clamp_min(1e-6)
+    u = fx * cam[..., 0] / safe + cx
+    v = fy * cam[..., 1] / safe + cy
+    grid = torch.stack([u / width * 2 - 1, v / height * 2 - 1], -1)  # align_corners=False
+    valid = (z > 1e-6) & (grid.abs() < 1).all(-1) & torch.isfinite(flat[..., 0])
+    grid = torch.where(valid[..., None], grid, torch.zeros_like(grid))
+    sampled = F.grid_sample(images[neighbours.reshape(-1)], grid.reshape(b * k, h * w, 1, 2),
+                            mode="bilinear", align_corners=False)  # (B k, 3, P, 1)
+    colours = sampled.reshape(b, k, 3, h, w)
+    return colours, valid.reshape(b, k, h, w)
+
+
+def rain_evidence(observed: Tensor, colours: Tensor, valid: Tensor, min_views: int = 2
+                  ) -> tuple[Tensor, Tensor]:
+    """How much brighter each pixel is than the median of its neighbours' views.
+
+    observed (B, 3, h, w), colours (B, k, 3, h, w), valid (B, k, h, w). Returns the evidence
+    (B, 3, h, w) >= 0 and where it is defined (B, 1, h, w): at least ``min_views`` valid
+    neighbours."""
+    nan = torch.full_like(colours, float("nan"))
+    ref = torch.where(valid[:, :, None], colours, nan).nanmedian(dim=1).values  # (B, 3, h, w)
+    defined = (valid.sum(1, keepdim=True) >= min_views)
+    evidence = (observed - ref).clamp_min(0)
+    evidence = torch.where(defined & torch.isfinite(evidence), evidence, torch.zeros_like(evidence))
+    return evidence, defined
