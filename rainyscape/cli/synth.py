@@ -6,10 +6,11 @@ Usage:
 
 Keys: rows, cols, width, height (pixels), mode=static|dynamic, trajectory=sphere|video,
 seed, workers (processes; default: 1 for small jobs, else every core), force=true (write
-into a non-empty folder), and any rain option: density (drops per
-m^3), wind_deg, wind_azimuth_deg, wind2_deg, wind2_azimuth_deg, mix, exposure_s,
-brightness, opacity, size_scale, rain_rate_mm_h, radius_min_mm, radius_max_mm, jitter,
-f_number, near_clip, fps. Prints the rainy-vs-clean PSNR / SSIM (the rain's strength).
+into a non-empty folder), and any rain option: density (drops per m^3), wind_deg,
+wind_azimuth_deg, wind2_deg, wind2_azimuth_deg, mix, exposure_s, brightness, opacity,
+size_scale, min_width_px, min_length_px, rain_rate_mm_h, radius_min_mm, radius_max_mm,
+jitter, near_clip, haze (0..1: a fog veil, separate from the rain layer), fps.
+Prints the rainy-vs-clean PSNR / SSIM (the rain's strength) and the rain's coverage.
 """
 
 from __future__ import annotations
@@ -56,12 +57,18 @@ def print_presets() -> None:
     from rainyscape.synth.presets import PRESETS
     from rainyscape.synth.strength import MEASURED_VERSION, PRESET_STRENGTH
 
-    print(f"{'preset':<8}  {'scene':<7}  {'views':<11}  {'rainy vs clean':<18}  description")
+    current = MEASURED_VERSION == SIM_VERSION
+
+    def column(name: str, width: int) -> str:
+        s = PRESET_STRENGTH.get(name, {}).get(width) if current else None
+        return f"{s[0]:5.1f} dB / {s[1]:.3f}" if s else "not measured"
+
+    print(f"{'preset':<9}  {'scene':<9}  {'views':<11}  {'label':<6}  {'at 128 px':<16}  {'at 512 px':<16}  "
+          "description (rainy vs clean PSNR / SSIM)")
     for p in PRESETS.values():
-        s = PRESET_STRENGTH.get(p.name) if MEASURED_VERSION == SIM_VERSION else None
-        strength = f"{s[0]:5.1f} dB / {s[1]:.3f}" if s else "not measured"
         views = f"{p.rows}x{p.cols} {p.width}px"
-        print(f"{p.name:<8}  {p.scene:<7}  {views:<11}  {strength:<18}  {p.description}")
+        print(f"{p.name:<9}  {p.scene:<9}  {views:<11}  {p.label_db:4.0f}dB  {column(p.name, 128):<16}  "
+              f"{column(p.name, 512):<16}  {p.level}: {p.description}")
 
 
 def main(argv: list[str]) -> int:
@@ -100,6 +107,8 @@ def main(argv: list[str]) -> int:
           f"{info['drops']} drops) to {path} in {time.perf_counter() - start:.1f} s")
     print(f"rainy vs clean: PSNR {m['psnr_rainy_vs_clean']:.2f} dB, SSIM {m['ssim_rainy_vs_clean']:.4f} "
           f"(per view: {min(v['psnr'] for v in m['per_view']):.2f} to {max(v['psnr'] for v in m['per_view']):.2f} dB)")
+    print(f"rain streaks cover {100 * m['rain_coverage']:.1f} % of the pixels (alpha > 0.02); their per-image "
+          f"mean is {100 * m['rain_mean_share']:.1f} % of their squared error")
     return 0
 
 
