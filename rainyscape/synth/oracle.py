@@ -18,7 +18,7 @@ import numpy as np
 
 from rainyscape.errors import DataError
 from rainyscape.synth.params import SIM_VERSION
-from rainyscape.synth.render import DEFAULT_SAMPLES, EDGE_FACTOR
+from rainyscape.synth.render import EDGE_FACTOR
 
 
 @lru_cache(maxsize=4)
@@ -39,26 +39,31 @@ def _scene(folder: str, stamp: float):
     spec = build_scene(scene, int(info["seed"]))
     rig = make_rig(spec.rig, int(info["rows"]), int(info["cols"]), int(info["width"]), int(info["height"]),
                    info.get("trajectory", "sphere"))
-    return SceneRenderer(spec), rig.cameras(), int(info["seed"])
+    from rainyscape.synth.render import default_samples
+
+    stored = (info.get("sampling") or {}).get("samples") or default_samples(int(info["width"]), int(info["height"]))
+    return SceneRenderer(spec), rig.cameras(), int(info["seed"]), int(stored)
 
 
-def rerender_clean(scene_dir: str | Path, view_index: int, samples: int = DEFAULT_SAMPLES,
+def rerender_clean(scene_dir: str | Path, view_index: int, samples: int | None = None,
                    edge_factor: int = EDGE_FACTOR, window: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """Clean view ``view_index`` (0-based: 0 is ``001.png``) of a simulated scene, rendered
     again: (H, W, 3) float in [0, 1].
 
     ``samples``: the base grid is ``samples`` x ``samples`` prefiltered samples per pixel and
-    edges get ``(edge_factor * samples)^2`` jittered ones; the stored images use the
-    defaults (2, 4), and doubling ``samples`` renders with 4x the samples.
+    edges get at least ``(edge_factor * samples)^2`` jittered ones; the default is the
+    stored images' sampling (scene.json ``sampling``: 3 below 128 px, else 2), and doubling
+    ``samples`` renders with 4x the samples.
     ``window=(x0, y0, x1, y1)`` renders a crop.
     """
     path = Path(scene_dir)
     meta = path / "scene.json"
     if not meta.is_file():
         raise DataError(f"{path}: no scene.json (not a simulated scene folder)")
-    renderer, cameras, seed = _scene(str(path.resolve()), meta.stat().st_mtime)
+    renderer, cameras, seed, stored = _scene(str(path.resolve()), meta.stat().st_mtime)
     if not 0 <= int(view_index) < len(cameras):
         raise DataError(f"{path}: view {view_index} out of range (the scene has {len(cameras)} views)")
-    view = renderer.render(cameras, int(view_index), samples=int(samples), edge_factor=int(edge_factor),
+    view = renderer.render(cameras, int(view_index), samples=stored if samples is None else int(samples),
+                           edge_factor=int(edge_factor),
                            seed=seed, window=window)
     return view.rgb

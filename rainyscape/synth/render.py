@@ -31,21 +31,27 @@ from rainyscape.synth.geometry import surface_uv
 from rainyscape.synth.scenes import SceneSpec
 from rainyscape.synth.textures import TEXTURES
 
-DEFAULT_SAMPLES = 2  # base grid per axis: 2 x 2 prefiltered samples per pixel
+SMALL_IMAGE = 128  # images narrower than this get a 3 x 3 base grid (busy and cheap), else 2 x 2
 EDGE_FACTOR = 4  # edge pixels: (EDGE_FACTOR * samples)^2 jittered samples (8 x 8 by default)
 CHUNK = 262_144  # samples shaded at once (bounds the texture code's memory)
 
 
-EDGE_SHARE = 0.15  # edge share above which edges get more samples (small, busy images)
+def default_samples(width: int, height: int) -> int:
+    """Base samples per axis for an image size: 3 below SMALL_IMAGE px, else 2."""
+    return 3 if max(width, height) < SMALL_IMAGE else 2
 
 
-def edge_samples_factor(factor: int, edge_share: float) -> int:
-    """Edge samples per axis relative to the base grid: ``factor``, raised where edges are
-    many (small images) so that their total error stays about that of a view with
-    EDGE_SHARE of edge pixels (the error of jittered sampling of an edge falls as m^-1.5)."""
+EDGE_SHARE = 0.2  # edge share above which edges get more samples (small, busy images)
+
+
+def edge_samples(samples: int, factor: int, edge_share: float) -> int:
+    """Edge samples per axis: ``factor * samples``, raised where edges are many (small
+    images) so that their total error stays about that of a view with EDGE_SHARE of edge
+    pixels (the error of jittered sampling across an edge falls as m^-1.5)."""
+    m = samples * factor
     if factor <= 1:
-        return max(factor, 1)
-    return max(factor, int(np.ceil(factor * (edge_share / EDGE_SHARE) ** (1 / 3) - 1e-9)))
+        return m
+    return max(m, int(round(m * (edge_share / EDGE_SHARE) ** (1 / 3))))
 
 
 @dataclass
@@ -242,17 +248,18 @@ class SceneRenderer:
 
     # ----------------------------------------------------------------------- views
 
-    def render(self, cameras: Cameras, index: int, samples: int = DEFAULT_SAMPLES,
+    def render(self, cameras: Cameras, index: int, samples: int | None = None,
                edge_factor: int = EDGE_FACTOR, seed: int = 0, prefilter: bool = True,
                window: tuple[int, int, int, int] | None = None) -> ViewRender:
-        """Render view ``index``: ``samples`` x ``samples`` prefiltered samples per pixel, and
-        ``edge_factor * samples`` squared jittered samples per pixel around edges.
+        """Render view ``index``: ``samples`` x ``samples`` prefiltered samples per pixel
+        (default: :func:`default_samples` of the image size), and ``edge_factor * samples``
+        squared (or more, see :func:`edge_samples`) jittered samples per pixel around edges.
         ``prefilter=False`` point-samples the textures (for measurements of the renderer);
         ``window=(x0, y0, x1, y1)`` renders only those pixels (a crop of the view)."""
         cam = Camera.of(cameras, index)
         x0, y0, x1, y1 = window if window is not None else (0, 0, cam.width, cam.height)
         h, w = y1 - y0, x1 - x0
-        n = int(samples)
+        n = default_samples(cam.width, cam.height) if samples is None else int(samples)
         if n < 1:
             raise ValueError(f"samples must be at least 1, got {samples}")
         # base pass: a regular n x n grid of cells per pixel, each prefiltered over its cell;
@@ -267,7 +274,7 @@ class SceneRenderer:
         rgb = base.rgb.reshape(h + 2, w + 2, n * n, 3)[1:-1, 1:-1].mean(2)
         sub_depth = base.z.reshape(h + 2, w + 2, n * n)[1:-1, 1:-1]
         normals = base.normal.reshape(h + 2, w + 2, n * n, 3)[1:-1, 1:-1]
-        m = n * edge_samples_factor(int(edge_factor), float(edge.mean()))
+        m = edge_samples(n, int(edge_factor), float(edge.mean()))
         if m > n and edge.any():
             pi, pj = np.nonzero(edge)
             rng = np.random.default_rng([int(seed), int(index), m])
@@ -286,37 +293,24 @@ class SceneRenderer:
             depth, normal = self.centre_depth(cam, (x0, y0, x1, y1))
         return ViewRender(np.clip(rgb, 0.0, 1.0), depth, normal, sub_depth, float(edge.mean()))
 
-    dilate = False
-    contrast = 0.0
-
     def _edges(self, base: Shaded, h: int, w: int, n: int) -> np.ndarray:
-        """Pixels to supersample: a change of plane, sky or shadow between neighbouring base
-        samples (that also changes the colour), both pixels holding them, grown by one pixel."""
+        """Pixels to supersample: both pixels holding two neighbouring base samples that see a
+        different plane, the sky, or a different side of a shadow boundary."""
         key = (base.plane * 2 + base.shadow).reshape(h, w, n, n).transpose(0, 2, 1, 3).reshape(h * n, w * n)
-        col = base.rgb.reshape(h, w, n, n, 3).transpose(0, 2, 1, 3, 4).reshape(h * n, w * n, 3)
         edge = np.zeros((h, w), bool)
         for axis in (0, 1):
             a = [slice(None), slice(None)]
             b = [slice(None), slice(None)]
             a[axis], b[axis] = slice(1, None), slice(None, -1)
             diff = key[tuple(a)] != key[tuple(b)]
-            if self.contrast > 0:
-                diff &= np.abs(col[tuple(a)] - col[tuple(b)]).max(-1) > self.contrast
             ry, rx = np.nonzero(diff)
             edge[ry // n, rx // n] = True
             if axis == 0:
                 edge[(ry + 1) // n, rx // n] = True
             else:
                 edge[ry // n, (rx + 1) // n] = True
-        if self.dilate and edge.any():  # grow by a pixel: thin features that fell between samples
-            grown = edge.copy()
-            grown[1:] |= edge[:-1]
-            grown[:-1] |= edge[1:]
-            g2 = grown.copy()
-            g2[:, 1:] |= grown[:, :-1]
-            g2[:, :-1] |= grown[:, 1:]
-            edge = g2
         return edge
+
 
     def centre_depth(self, cam: Camera, window: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
         x0, y0, x1, y1 = window

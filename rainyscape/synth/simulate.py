@@ -18,7 +18,7 @@ from rainyscape.synth import layout
 from rainyscape.synth.presets import PRESETS
 from rainyscape.synth.params import SIM_VERSION, RainConfig
 from rainyscape.synth.rain import make_drop_field, render_rain
-from rainyscape.synth.render import DEFAULT_SAMPLES, EDGE_FACTOR, SceneRenderer, ViewRender
+from rainyscape.synth.render import EDGE_FACTOR, SceneRenderer, ViewRender, default_samples
 from rainyscape.synth.rig import make_rig
 from rainyscape.synth.scenes import build_scene
 
@@ -108,8 +108,9 @@ class Simulation:
     def __len__(self) -> int:
         return len(self.cameras)
 
-    def render_clean(self, k: int, samples: int = DEFAULT_SAMPLES) -> ViewRender:
-        """The clean view ``k`` (pixel integrals; ``samples`` per axis, see render.py)."""
+    def render_clean(self, k: int, samples: int | None = None) -> ViewRender:
+        """The clean view ``k`` (pixel integrals; ``samples`` per axis, default by image size:
+        see render.py)."""
         return self.renderer.render(self.cameras, k, samples=samples, seed=self.job.seed)
 
     def render_view(self, k: int) -> dict:
@@ -229,6 +230,7 @@ def generate(out_dir: str | Path, preset: str = "demo", rows: int | None = None,
     layout.write_cameras_csv(out / "cameras.csv", rig.positions, rig.rotations, np.full(n, rig.focal_mm),
                              np.full(n, rig.h_aperture_mm), np.full(n, rig.v_aperture_mm))
     lo, hi = sim.box
+    base_n = default_samples(int(width), int(height))
     info = {
         "simulator_version": SIM_VERSION, "preset": preset, "scene": p.scene, "description": p.description,
         "mode": mode, "trajectory": trajectory, "rows": rows, "cols": cols, "width": width,
@@ -243,9 +245,9 @@ def generate(out_dir: str | Path, preset: str = "demo", rows: int | None = None,
         "haze": ({"folder": layout.HAZE_DIR, "format": "grey png: transmission T; rainy = (clean * T + fog * "
                   "(1 - T)) * (1 - A) + C * A", "fog_rgb": sim.fog_rgb.tolist(), "haze": rain.haze}
                  if rain.haze > 0 else None),
-        "sampling": {"clean": f"{DEFAULT_SAMPLES}x{DEFAULT_SAMPLES} prefiltered samples per pixel, "
-                     f"{DEFAULT_SAMPLES * EDGE_FACTOR}x{DEFAULT_SAMPLES * EDGE_FACTOR} jittered at edges",
-                     "samples": DEFAULT_SAMPLES, "edge_factor": EDGE_FACTOR,
+        "sampling": {"clean": f"{base_n}x{base_n} prefiltered samples per pixel, at least "
+                     f"{base_n * EDGE_FACTOR}x{base_n * EDGE_FACTOR} jittered at edges",
+                     "samples": base_n, "edge_factor": EDGE_FACTOR,
                      "edge_pixels": round(float(np.mean([v["edge_pixels"] for v in per_view])), 4)},
         "metrics": {"psnr_rainy_vs_clean": round(float(np.mean([v["psnr"] for v in per_view])), 3),
                     "ssim_rainy_vs_clean": round(float(np.mean([v["ssim"] for v in per_view])), 4),
