@@ -17,7 +17,7 @@ def tiny_scene_dir(tmp_path_factory):
     from rainyscape.synth import generate
 
     return generate(tmp_path_factory.mktemp("tiny_scene") / "scene", "demo", rows=3, cols=4,
-                    width=48, height=48, mode="static", seed=0, size_scale=6.0, density=6.0)
+                    width=48, height=48, mode="static", seed=0, size_scale=6.0, density=0.5)
 
 
 @pytest.fixture(scope="session")

@@ -38,7 +38,7 @@ def rainy_video(tmp_path_factory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("rain_video")
     # Rain pinned to a medium strength (about 27 dB rainy vs clean at 192 px).
     sim = generate(root / "sim", "demo", rows=1, cols=FRAMES, width=SIZE, height=SIZE,
-                   mode="dynamic", trajectory="video", seed=0, density=22.0)
+                   mode="dynamic", trajectory="video", seed=0, density=0.9)
     frames = np.stack([iio.imread(p) for p in sorted((sim / "images_rain").glob("*.png"))])
     clip = root / "clip.mp4"
     iio.imwrite(clip, frames, fps=10, codec="libx264", macro_block_size=1)

@@ -144,12 +144,12 @@ def _alpha_centroid_and_axis(alpha: np.ndarray):
 def test_static_rain_streak_is_where_the_drop_projects_in_every_view(tiny_scene_dir):
     scene = MayaCsvParser(MayaCsvConfig(normalize=False)).parse(tiny_scene_dir)
     cams = scene.cameras
-    cfg = RainConfig(size_scale=100.0, opacity=1.0, f_number=1e3, exposure_s=0.1)
+    cfg = RainConfig(size_scale=100.0, opacity=1.0, exposure_s=0.1)
     drop = _one_drop([0.3, 3.0, 2.0], [1.5, -6.0, 0.0])
     start, end = drop.segments(0.0, cfg.exposure_s)
     sky = np.full((cams.height, cams.width), np.inf)
     for view in (0, 5, 11):
-        layer = render_rain(drop, cams, view, sky, 0.0, cfg, np.ones(3), 15.0, 0.035)
+        layer = render_rain(drop, cams, view, sky, 0.0, cfg, np.ones(3))
         assert layer.alpha.max() > 0.3
         uv, _ = cams[view].project(torch.from_numpy(np.stack([start[0], end[0]])).float())
         a, b = uv[0].numpy()
@@ -157,18 +157,18 @@ def test_static_rain_streak_is_where_the_drop_projects_in_every_view(tiny_scene_
         assert np.linalg.norm(centroid - (a + b) / 2) < 0.6
         seg = (b - a) / np.linalg.norm(b - a)
         assert abs(seg @ axis) > 0.99  # the streak runs along the projected motion
-        blocked = render_rain(drop, cams, view, np.full_like(sky, 5.0), 0.0, cfg, np.ones(3), 15.0, 0.035)
+        blocked = render_rain(drop, cams, view, np.full_like(sky, 5.0), 0.0, cfg, np.ones(3))
         assert blocked.alpha.max() == 0.0  # hidden behind a nearer surface
 
 
 def test_dynamic_rain_moves_between_frames(tiny_scene):
     cams = tiny_scene.cameras
-    cfg = RainConfig(size_scale=40.0, opacity=1.0, f_number=1e3)
+    cfg = RainConfig(size_scale=40.0, opacity=1.0)
     drop = _one_drop([0.0, 0.5, 0.0], [0.0, -4.0, 0.0])
     sky = np.full((cams.height, cams.width), np.inf)
-    first = render_rain(drop, cams, 4, sky, 0.0, cfg, np.ones(3), 3.0, 0.035)
-    again = render_rain(drop, cams, 4, sky, 0.0, cfg, np.ones(3), 3.0, 0.035)
-    later = render_rain(drop, cams, 4, sky, 1.0 / 24, cfg, np.ones(3), 3.0, 0.035)
+    first = render_rain(drop, cams, 4, sky, 0.0, cfg, np.ones(3))
+    again = render_rain(drop, cams, 4, sky, 0.0, cfg, np.ones(3))
+    later = render_rain(drop, cams, 4, sky, 1.0 / 24, cfg, np.ones(3))
     np.testing.assert_array_equal(first.alpha, again.alpha)  # one instant: one picture
     assert np.abs(first.alpha - later.alpha).max() > 0.3
     c0, _ = _alpha_centroid_and_axis(first.alpha)

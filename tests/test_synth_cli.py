@@ -31,6 +31,7 @@ def test_cli_writes_a_scene_and_reports_its_strength(tmp_path, capsys):
 @pytest.mark.parametrize("args,message", [
     (["out=x", "densty=3"], "unknown key 'densty'. Did you mean 'density'?"),
     (["out=x", "rows=two"], "rows: cannot read 'two'"),
+    (["out=x", "rows=0"], "rows must be at least 1, got 0"),
     (["preset=demo"], "where to write?"),
     (["out=x", "--fast"], "unknown option --fast"),
 ])
@@ -42,8 +43,9 @@ def test_cli_rejects_bad_arguments(args, message, capsys):
 def test_cli_lists_presets(capsys):
     assert run_cli(main, ["--list"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert sorted(line.split()[0] for line in lines[1:]) == ["bridge", "demo", "plaza", "street", "yard"]
-    assert all(" dB / " in line for line in lines[1:])  # measured strength of the current version
+    assert "at 128 px" in lines[0] and "at 512 px" in lines[0]
+    assert sorted(line.split()[0] for line in lines[1:]) == ["bridge", "crossroad", "demo", "plaza", "street", "yard"]
+    assert all(line.count(" dB / ") == 2 for line in lines[1:])  # measured at 128 and 512 px, this version
 
 
 def test_demo_scene_is_cached_and_never_left_half_written(tmp_path, monkeypatch):

@@ -78,22 +78,32 @@ def blob(x: float, y: float, z: float, radius: float, squash: float, seed: int) 
 
 
 def surface_uv(points: np.ndarray, normals: np.ndarray, base_y: np.ndarray,
-               axis: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Texture coordinates (u, v) in metres and a mask of upward faces.
+               axis: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """Texture coordinates (u, v) in metres, a mask of upward faces, and the gradients of u
+    and v with respect to the surface point (M, 3) each (for footprints).
 
     Upward faces map (x, z); walls map (horizontal distance along the wall, height above
     ``base_y``); parts with a vertical ``axis`` (M, 2) map (arc length, height).
     """
+    m = len(points)
     up = normals[:, 1] > 0.7
-    tangent = np.stack([normals[:, 2], np.zeros(len(normals)), -normals[:, 0]], 1)
+    tangent = np.stack([normals[:, 2], np.zeros(m), -normals[:, 0]], 1)
     tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-9)
     u = np.einsum("ij,ij->i", points, tangent)
     v = points[:, 1] - base_y
+    grad_u = tangent.copy()
+    grad_v = np.tile([0.0, 1.0, 0.0], (m, 1))
     if axis is not None:
         has_axis = ~np.isnan(axis[:, 0])
         dx, dz = points[:, 0] - axis[:, 0], points[:, 2] - axis[:, 1]
         radius = np.hypot(dx, dz)
-        u = np.where(has_axis, np.arctan2(dz, dx) * np.maximum(radius, 0.05), u)
+        r_map = np.maximum(radius, 0.05)
+        u = np.where(has_axis, np.arctan2(dz, dx) * r_map, u)
+        r2 = np.maximum(radius * radius, 1e-12)
+        arc = np.stack([-dz, np.zeros(m), dx], 1) * (r_map / r2)[:, None]
+        grad_u = np.where(has_axis[:, None], arc, grad_u)
     u = np.where(up, points[:, 0], u)
     v = np.where(up, points[:, 2], v)
-    return u, v, up
+    grad_u = np.where(up[:, None], np.array([1.0, 0.0, 0.0]), grad_u)
+    grad_v = np.where(up[:, None], np.array([0.0, 0.0, 1.0]), grad_v)
+    return u, v, up, grad_u, grad_v

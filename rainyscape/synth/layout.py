@@ -4,8 +4,10 @@
 images_rain/001.png ...     rainy views (8-bit RGB)
 images_wo_rain/001.png ...  clean views
 depth/001.mat ...           scipy .mat, key "depth": float32 z-depth in world units, inf = sky
-rain/001.png ...            ground-truth rain, 8-bit RGBA: RGB = rain colour C, A = coverage;
-                            rainy = clean * (1 - A) + C * A
+rain/001.png ...            ground-truth rain (streaks only), 8-bit RGBA: RGB = rain colour C,
+                            A = coverage; rainy = clean * (1 - A) + C * A
+haze/001.png ...            only with the haze option: fog transmission T (grey); then
+                            rainy = (clean * T + fog * (1 - T)) * (1 - A) + C * A
 cameras.csv                 the paper's columns, Maya conventions
 scene.json                  simulator parameters and rainy-vs-clean metrics
 ```
@@ -24,6 +26,7 @@ from rainyscape.dataparsers.images import write_png
 from rainyscape.dataparsers.maya_math import MAYA_CSV_COLUMNS
 
 RAINY_DIR, CLEAN_DIR, DEPTH_DIR, RAIN_DIR = "images_rain", "images_wo_rain", "depth", "rain"
+HAZE_DIR = "haze"  # only with the haze option: fog transmission per pixel
 DEPTH_KEY = "depth"
 
 
@@ -43,14 +46,17 @@ def make_dirs(out: Path) -> None:
 
 
 def write_view(out: Path, stem: str, rainy: np.ndarray, clean: np.ndarray, depth: np.ndarray,
-               rain_alpha: np.ndarray, rain_color: np.ndarray) -> None:
-    """Write one view's files (float images in [0, 1])."""
+               rain_alpha: np.ndarray, rain_color: np.ndarray, haze: np.ndarray | None = None) -> None:
+    """Write one view's files (float images in [0, 1]; ``haze``: fog transmission, if any)."""
     write_png(out / RAINY_DIR / f"{stem}.png", rainy)
     write_png(out / CLEAN_DIR / f"{stem}.png", clean)
     rgba = np.concatenate([to_uint8(rain_color), to_uint8(rain_alpha)[..., None]], -1)
     write_png(out / RAIN_DIR / f"{stem}.png", rgba)
     scipy.io.savemat(out / DEPTH_DIR / f"{stem}.mat", {DEPTH_KEY: depth.astype(np.float32)},
                      do_compression=True)
+    if haze is not None:
+        (out / HAZE_DIR).mkdir(exist_ok=True)
+        write_png(out / HAZE_DIR / f"{stem}.png", np.repeat(to_uint8(haze)[..., None], 3, -1))
 
 
 def write_cameras_csv(path: Path, positions: np.ndarray, rotations: np.ndarray, focal_mm: np.ndarray,

@@ -216,8 +216,58 @@ def _plaza(seed: int) -> SceneSpec:
                      sun_dir=(0.35, 0.8, 0.45))
 
 
+def traffic_light(x: float, z: float, seed: int) -> list[Part]:
+    return [Part(vcylinder(x, 0, z, 0.07, 3.3, 10), "metal", axis=(x, z), seed=seed),
+            Part(box(x, 3.3, z, 0.32, 0.95, 0.32), "metal", {"color": (0.16, 0.16, 0.15)}, seed=seed + 1)]
+
+
+def _crossroad(seed: int) -> SceneSpec:
+    """Two roads crossing at the origin (along X and Z), zebra crossings on every arm, corner
+    blocks of shops behind the junction, cars, traffic lights, lamps and trees."""
+    rng = np.random.default_rng(seed)
+    h, walk = 4.0, 3.0
+    front = h + walk + 0.3
+    parts = [ground_plane(300, seed, road_half_width=h, sidewalk=walk, outer="paving", cross=True)]
+    walls = [(0.6, 0.32, 0.22), (0.82, 0.76, 0.64), (0.5, 0.34, 0.28), (0.74, 0.7, 0.66), (0.66, 0.4, 0.3)]
+    k = 0
+    for sx in (-1.0, 1.0):
+        a = front
+        while a < 30.0:  # along the X road, facing +Z
+            w = float(rng.uniform(5.5, 8.0))
+            ht = float(rng.uniform(7.0, 14.0))
+            parts += building(sx * (a + w / 2), -front - 3.5, w, 7.0, ht, seed + 10 * k, walls[k % 5],
+                              "brick" if k % 2 == 0 else "plaster")
+            a += w + 0.2
+            k += 1
+        a = front + 7.2
+        while a < 34.0:  # along the Z road, facing the road
+            w = float(rng.uniform(5.5, 8.0))
+            ht = float(rng.uniform(8.0, 15.0))
+            parts += building(sx * (front + 3.5), -(a + w / 2), 7.0, w, ht, seed + 10 * k, walls[k % 5],
+                              "plaster" if k % 2 == 0 else "brick", yaw=0.0)
+            a += w + 0.2
+            k += 1
+    for i, bx in enumerate((-24.0, -9.0, 6.0, 21.0)):  # a taller back row fills the sky
+        parts += building(bx, -40.0, 13.0, 8.0, 22.0 + 3 * i, seed + 400 + i, (0.64, 0.62, 0.6), "plaster", shop=False)
+    for i, (lx, lz) in enumerate(((-(h + 0.6), -(h + 0.6)), ((h + 0.6), -(h + 0.6)), (-(h + 0.6), h + 0.6), (h + 0.6, h + 0.6))):
+        parts += traffic_light(lx, lz, seed + 60 + 2 * i)
+    for i, lx in enumerate((-16.0, 16.0)):
+        parts += street_lamp(lx, -(h + 1.0), seed + 80 + i, arm_dir=1.0, with_sign=(i == 0))
+    for i, (tx, tz) in enumerate(((-12.0, h + 1.6), (12.5, h + 1.6), (h + 1.6, -15.0), (-(h + 1.6), -19.0))):
+        parts += tree(tx, tz, float(rng.uniform(5.0, 6.5)), seed + 90 + i)
+    parts += car(-9.0, -2.0, 0.0, (0.75, 0.12, 0.1), seed + 100)
+    parts += car(10.0, 2.0, 180.0, (0.9, 0.9, 0.88), seed + 101)
+    parts += car(-2.0, 7.5, 90.0, (0.15, 0.3, 0.62), seed + 102)
+    parts += car(2.0, -12.0, -90.0, (0.9, 0.7, 0.1), seed + 103)
+    parts.append(Part(box(9.5, 0, 9.0, 2.4, 2.5, 2.0), "sign", {"color": (0.5, 0.12, 0.12)}, top="metal",
+                      seed=seed + 110))
+    parts += bench(-9.5, 8.5, 0.0, seed + 111)
+    return SceneSpec("crossroad", parts, Rig((0.0, 1.5, -2.0), 20.0, (15.0, 42.0), (-50.0, 50.0)),
+                     sun_dir=(0.4, 0.75, 0.45))
+
+
 SCENES: dict[str, Callable[[int], SceneSpec]] = {
-    "street": _street, "yard": _yard, "bridge": _bridge, "plaza": _plaza,
+    "street": _street, "yard": _yard, "bridge": _bridge, "plaza": _plaza, "crossroad": _crossroad,
 }
 
 

@@ -18,7 +18,7 @@ from rainyscape.synth import layout
 from rainyscape.synth.presets import PRESETS
 from rainyscape.synth.params import SIM_VERSION, RainConfig
 from rainyscape.synth.rain import make_drop_field, render_rain
-from rainyscape.synth.render import SceneRenderer
+from rainyscape.synth.render import EDGE_FACTOR, SceneRenderer, ViewRender, default_samples
 from rainyscape.synth.rig import make_rig
 from rainyscape.synth.scenes import build_scene
 
@@ -100,6 +100,7 @@ class Simulation:
         self.drops = make_drop_field(*self.box, job.rain, job.seed + 1000)
         sky_mean = 0.5 * (np.asarray(self.spec.sky_zenith) + np.asarray(self.spec.sky_horizon))
         self.drop_rgb = np.clip(job.rain.brightness * sky_mean, 0, 1)
+        self.fog_rgb = np.asarray(self.spec.sky_horizon, float)
         n = len(self.cameras)
         self.names = layout.view_names(n)
         self.times = [k / job.rain.fps if job.mode == "dynamic" else 0.0 for k in range(n)]
@@ -107,19 +108,46 @@ class Simulation:
     def __len__(self) -> int:
         return len(self.cameras)
 
+    def render_clean(self, k: int, samples: int | None = None) -> ViewRender:
+        """The clean view ``k`` (pixel integrals; ``samples`` per axis, default by image size:
+        see render.py)."""
+        return self.renderer.render(self.cameras, k, samples=samples, seed=self.job.seed)
+
     def render_view(self, k: int) -> dict:
         """Render view ``k``, write its files, return its rainy-vs-clean metrics."""
-        view = self.renderer.render(self.cameras, k)
-        focus = float(np.linalg.norm(self.rig.positions[k] - self.look_at))
-        rain_layer = render_rain(self.drops, self.cameras, k, view.depth, self.times[k], self.job.rain,
-                                 self.drop_rgb, focus, self.rig.focal_mm / 1000.0)
+        view = self.render_clean(k)
+        cfg = self.job.rain
+        rain_layer = render_rain(self.drops, self.cameras, k, view.sub_depth, self.times[k], cfg, self.drop_rgb)
+        background = view.rgb
+        transmission = None
+        if cfg.haze > 0:
+            transmission = haze_transmission(view.sub_depth, cfg.haze)
+            background = view.rgb * transmission[..., None] + self.fog_rgb * (1 - transmission[..., None])
         clean8 = layout.to_uint8(view.rgb)
-        rainy8 = layout.to_uint8(rain_layer.composite(view.rgb))
+        rainy8 = layout.to_uint8(rain_layer.composite(background))
         layout.write_view(Path(self.job.out), self.names[k], rainy8, clean8, view.depth,
-                          rain_layer.alpha, rain_layer.color)
+                          rain_layer.alpha, rain_layer.color, transmission)
         p_db, s = rain_strength(rainy8, clean8)
+        coverage, mean_share = rain_statistics(rain_layer.alpha, layout.to_uint8(rain_layer.composite(view.rgb)), clean8)
         return {"name": f"{self.names[k]}.png", "psnr": round(p_db, 3), "ssim": round(s, 4),
-                "time_s": self.times[k]}
+                "rain_coverage": round(coverage, 4), "rain_mean_share": round(mean_share, 4),
+                "streaks": rain_layer.streaks, "edge_pixels": round(view.edge_fraction, 4), "time_s": self.times[k]}
+
+
+def haze_transmission(sub_depth: np.ndarray, haze: float) -> np.ndarray:
+    """Share of the scene's light that reaches the camera through a uniform fog that loses
+    ``haze`` of it over 100 m (mean over the pixel's samples; the sky counts as 300 m)."""
+    beta = -np.log(max(1.0 - float(haze), 1e-6)) / 100.0
+    return np.exp(-beta * np.minimum(sub_depth, 300.0)).mean(-1)
+
+
+def rain_statistics(alpha: np.ndarray, rainy8: np.ndarray, clean8: np.ndarray) -> tuple[float, float]:
+    """Coverage (share of pixels with rain alpha > 0.02) and the share of the rain's squared
+    error that is its per-image mean (a uniform veil has 1, sparse streaks little)."""
+    r = rainy8.astype(np.float64) - clean8.astype(np.float64)
+    mean_sq = float((r.reshape(-1, 3).mean(0) ** 2).sum())
+    sq = float((r ** 2).reshape(-1, 3).mean(0).sum())
+    return float((alpha > 0.02).mean()), mean_sq / sq if sq > 0 else 0.0
 
 
 _WORKER: Simulation | None = None
@@ -181,9 +209,11 @@ def generate(out_dir: str | Path, preset: str = "demo", rows: int | None = None,
     if trajectory not in TRAJECTORIES:
         raise ConfigError(f"trajectory must be one of {', '.join(TRAJECTORIES)}, got '{trajectory}'")
     p = PRESETS[preset]
-    rows, cols = rows or p.rows, cols or p.cols
-    width = width or p.width
-    height = height or (p.height if width == p.width else width)
+    # None means "the preset's"; 0 or less is an error, never silently the preset's
+    rows = p.rows if rows is None else rows
+    cols = p.cols if cols is None else cols
+    width = p.width if width is None else width
+    height = (p.height if width == p.width else width) if height is None else height
     for key, value in (("rows", rows), ("cols", cols), ("width", width), ("height", height)):
         if int(value) < 1:
             raise ConfigError(f"{key} must be at least 1, got {value}")
@@ -202,18 +232,29 @@ def generate(out_dir: str | Path, preset: str = "demo", rows: int | None = None,
     layout.write_cameras_csv(out / "cameras.csv", rig.positions, rig.rotations, np.full(n, rig.focal_mm),
                              np.full(n, rig.h_aperture_mm), np.full(n, rig.v_aperture_mm))
     lo, hi = sim.box
+    base_n = default_samples(int(width), int(height))
     info = {
         "simulator_version": SIM_VERSION, "preset": preset, "scene": p.scene, "description": p.description,
         "mode": mode, "trajectory": trajectory, "rows": rows, "cols": cols, "width": width,
         "height": height, "seed": seed, "units": "metres, Y up (Maya)",
         "rain": rain.to_dict(), "drops": len(sim.drops), "drop_box": [lo.tolist(), hi.tolist()],
         "look_at": sim.look_at.tolist(), "sun_dir": list(sim.spec.sun_dir),
-        "depth": {"folder": layout.DEPTH_DIR, "key": layout.DEPTH_KEY, "kind": "z-depth along the optical axis",
+        "depth": {"folder": layout.DEPTH_DIR, "key": layout.DEPTH_KEY,
+                  "kind": "z-depth along the optical axis of the pixel-centre ray",
                   "units": "world", "sky": "inf"},
         "rain_layer": {"folder": layout.RAIN_DIR, "format": "RGBA png: RGB rain colour C, A coverage; "
-                       "rainy = clean * (1 - A) + C * A"},
+                       "rainy = clean * (1 - A) + C * A", "contents": "streaks only"},
+        "haze": ({"folder": layout.HAZE_DIR, "format": "grey png: transmission T; rainy = (clean * T + fog * "
+                  "(1 - T)) * (1 - A) + C * A", "fog_rgb": sim.fog_rgb.tolist(), "haze": rain.haze}
+                 if rain.haze > 0 else None),
+        "sampling": {"clean": f"{base_n}x{base_n} prefiltered samples per pixel, at least "
+                     f"{base_n * EDGE_FACTOR}x{base_n * EDGE_FACTOR} jittered at edges",
+                     "samples": base_n, "edge_factor": EDGE_FACTOR,
+                     "edge_pixels": round(float(np.mean([v["edge_pixels"] for v in per_view])), 4)},
         "metrics": {"psnr_rainy_vs_clean": round(float(np.mean([v["psnr"] for v in per_view])), 3),
                     "ssim_rainy_vs_clean": round(float(np.mean([v["ssim"] for v in per_view])), 4),
+                    "rain_coverage": round(float(np.mean([v["rain_coverage"] for v in per_view])), 4),
+                    "rain_mean_share": round(float(np.mean([v["rain_mean_share"] for v in per_view])), 4),
                     "per_view": per_view},
         "workers": workers,
         "seconds": round(time.perf_counter() - started, 2),

@@ -1,0 +1,48 @@
+"""Multi-view rain evidence: neighbours, back-projection, and the evidence itself on a
+simulated scene with its true depth and rain layer."""
+
+from __future__ import annotations
+
+import torch
+
+from rainyscape.cameras import Window
+from rainyscape.losses.multiview_evidence import (backproject, neighbour_colours, neighbour_table,
+                                                  rain_evidence)
+
+
+def test_neighbours_are_the_nearest_other_views_of_the_pool():
+    centers = torch.tensor([[0.0, 0, 0], [1, 0, 0], [3, 0, 0], [6, 0, 0]])
+    table = neighbour_table(centers, [0, 1, 3], k=2)
+    assert table.tolist() == [[1, 3], [0, 3], [1, 0], [1, 0]]  # never itself, only pool views
+
+
+def test_backprojected_pixels_project_back_onto_their_centres(tiny_scene):
+    view = 5
+    cams = tiny_scene.cameras[[view]]
+    window = Window(torch.tensor([7]), torch.tensor([3]), 20, 16)
+    depth = torch.rand(1, 1, 16, 20) * 3 + 1
+    points = backproject(cams, window, depth)
+    uv, z = cams.project(points.reshape(-1, 3))
+    xs, ys = window.pixel_grid()
+    assert torch.allclose(uv[0, :, 0], xs.reshape(-1).float() + 0.5, atol=1e-3)
+    assert torch.allclose(uv[0, :, 1], ys.reshape(-1).float() + 0.5, atol=1e-3)
+    assert torch.allclose(z[0], depth.reshape(-1), atol=1e-4)
+
+
+def test_evidence_finds_the_rain_with_the_true_depth(tiny_scene):
+    scene = tiny_scene
+    images = scene.images.permute(0, 3, 1, 2).float() / 255
+    table = neighbour_table(scene.cameras.centers, list(scene.train_indices), 6)
+    views = torch.tensor(scene.train_indices)
+    window = Window.full(scene.cameras[views])
+    depth = scene.depths[views][:, None]
+    colours, valid = neighbour_colours(backproject(scene.cameras[views], window, depth), table[views],
+                                       scene.cameras, images)
+    evidence, defined = rain_evidence(images[views], colours, valid)
+    true = scene.rain_layers[views].permute(0, 3, 1, 2)
+    e, t = evidence.mean(1).flatten(), true.mean(1).flatten()
+    corr = torch.corrcoef(torch.stack([e, t]))[0, 1]
+    assert defined.float().mean() > 0.8
+    assert corr > 0.45, float(corr)  # measured 0.61 here, 0.72 on the 128 px crossroad
+    rainy_pixels = t > 0.05
+    assert e[rainy_pixels].mean() > 4 * e[~rainy_pixels].mean()  # measured 8.9x: rain stands out
