@@ -73,18 +73,23 @@ def test_agr_value_by_hand():
     rendered = (0.2 * cols).expand(1, 3, 3, 3)  # 0.2 along x
     target = rain + rendered + (0.3 * cols[:, None]).expand(1, 3, 3, 3)  # I - R: 0.2 along x, 0.3 along y
     valid = torch.tensor([[True]])
+    per_pixel = 0.125  # a unit step gives 4 at the Sobel gain: 1/8 reads derivatives per pixel
     # theta = 0: along = |D_y R| = 0, across = |D_x R| = 0.1, scene = |D_x B| + |D_x (I - R)| = 0.4
-    loss = agr_loss(rendered, target, rain, torch.tensor([[0.0]]), valid, background_weight=0.5)
+    loss = agr_loss(rendered, target, rain, torch.tensor([[0.0]]), valid, background_weight=0.5, gain=per_pixel)
     assert float(loss) == pytest.approx(0.0 - 0.1 + 0.5 * 0.4, abs=1e-6)
     # theta = pi / 2: along = |D_-x R| = 0.1, across = 0, scene = 0 + 0.3
-    loss = agr_loss(rendered, target, rain, torch.tensor([[math.pi / 2]]), valid, background_weight=1.0)
+    loss = agr_loss(rendered, target, rain, torch.tensor([[math.pi / 2]]), valid, background_weight=1.0, gain=per_pixel)
     assert float(loss) == pytest.approx(0.1 - 0.0 + 1.0 * 0.3, abs=1e-6)
     # K = 2 averages the directions; invalid directions are left out.
     both = agr_loss(rendered, target, rain, torch.tensor([[0.0, math.pi / 2]]),
-                    torch.tensor([[True, True]]), background_weight=0.5)
+                    torch.tensor([[True, True]]), background_weight=0.5, gain=per_pixel)
     assert float(both) == pytest.approx(0.5 * ((-0.1 + 0.2) + (0.1 + 0.15)), abs=1e-6)
+    # The paper's operator (gain 1) reads the same image 8 times larger.
+    sobel = agr_loss(rendered, target, rain, torch.tensor([[0.0, math.pi / 2]]),
+                     torch.tensor([[True, True]]), background_weight=0.5)
+    assert float(sobel) == pytest.approx(8 * float(both), rel=1e-5)
     one = agr_loss(rendered, target, rain, torch.tensor([[0.0, math.pi / 2]]),
-                   torch.tensor([[True, False]]), background_weight=0.5)
+                   torch.tensor([[True, False]]), background_weight=0.5, gain=per_pixel)
     assert float(one) == pytest.approx(-0.1 + 0.2, abs=1e-6)
 
 
