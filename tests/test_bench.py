@@ -11,29 +11,58 @@ from rainyscape.bench.matrix import ABLATIONS, Cell, build_cells
 from rainyscape.bench.tables import markdown_report, markdown_table
 
 
-def _result(psnr: float, post: bool = False, train_s: float = 10.0, mem: float = 500.0) -> dict:
+def _result(psnr: float, post: bool = False, train_s: float = 10.0, mem: float = 500.0, scene: str = "") -> dict:
     summary = {"rainy_input_psnr": 20.0, "rainy_input_ssim": 0.7, "train_psnr": psnr, "train_ssim": 0.8,
                "heldout_psnr": psnr - 2, "heldout_ssim": 0.75}
     if post:
-        summary.update({"train_fusion_psnr": psnr + 1, "train_fusion_ssim": 0.85})
-    return {"status": "finished", "summary": summary, "postprocess": ["fusion"] if post else [],
+        summary.update({"train_fusion_psnr": psnr + 1, "train_fusion_ssim": 0.85, "train_fusion_coverage": 0.12,
+                        "train_fusion_random_psnr": 20.5, "train_fusion_random_ssim": 0.71})
+    return {"status": "finished", "summary": summary, "postprocess": ["fusion"] if post else [], "scene": scene,
             "train_s": train_s, "peak_rss_mib": mem, "lpips": {"available": False, "reason": "no weights"}}
+
+
+ORACLE = {"yard": {"available": True, "train": {"psnr": 41.0, "ssim": 0.99}, "heldout": {"psnr": 40.0, "ssim": 0.98}},
+          "street": {"available": True, "train": {"psnr": 43.0, "ssim": 0.97}, "heldout": {"psnr": 42.0, "ssim": 0.96}}}
+
+
+def _rows(table: str) -> dict[str, str]:
+    return {line.split(" | ")[0].strip("| "): line for line in table.splitlines()[2:]}
 
 
 def test_table_one_layout():
     cells = build_cells(["nerf", "ours"], [("yard", "/y"), ("street", "/s")], [])
     results = {"cells": {"yard/nerf": _result(25.0), "street/nerf": _result(27.0, train_s=30),
-                         "yard/ours": _result(28.0, post=True, mem=900), "street/ours": _result(30.0, post=True)}}
+                         "yard/ours": _result(28.0, post=True, mem=900, scene="yard"),
+                         "street/ours": _result(30.0, post=True, scene="street")}, "oracle": ORACLE}
     table = markdown_table(cells, results, "train").splitlines()
     assert table[0].startswith("| Method | yard PSNR ↑ | yard SSIM ↑ | yard LPIPS ↓ | street PSNR ↑")
-    assert "Average PSNR ↑" in table[0] and table[0].endswith("Train time (s) | Peak memory (MiB) |")
-    rows = {line.split(" | ")[0].strip("| "): line for line in table[2:]}
-    assert list(rows) == ["rainy input", "nerf", "ours", "ours + fusion"]
-    assert rows["nerf"].startswith("| nerf | 25.00 | 0.800 | n/a | 27.00 | 0.800 | n/a | 26.00 | 0.800 | n/a | 20 | 500 |")
+    assert "Average PSNR ↑" in table[0]
+    assert table[0].endswith("Budget (steps × px/step) | Train time (s) | Peak memory (MiB) |")
+    rows = _rows("\n".join(table))
+    assert list(rows) == ["oracle 3D", "rainy input", "nerf", "ours", "ours + fusion", "↳ fused − input",
+                          "↳ control: random mask, same coverage (12.0 %)"]
+    assert rows["oracle 3D"].startswith("| oracle 3D | 41.00 | 0.990 | n/a | 43.00 | 0.970 | n/a | 42.00 | 0.980 |")
+    assert rows["nerf"].startswith("| nerf | 25.00 | 0.800 | n/a | 27.00 | 0.800 | n/a | 26.00 | 0.800 | n/a | – | 20 | 500 |")
     assert "| 29.00 |" in rows["ours"] and "| 900 |" in rows["ours"]  # average, largest peak
     assert "| 30.00 |" in rows["ours + fusion"]  # (29 + 31) / 2
+    # fused minus input: (29 - 20) and (31 - 20), average +10; SSIM 0.85 - 0.7
+    assert rows["↳ fused − input"].startswith("| ↳ fused − input | +9.00 | +0.150 | n/a | +11.00 | +0.150 | n/a | +10.00 |")
+    assert rows["↳ control: random mask, same coverage (12.0 %)"].split(" | ")[1:3] == ["20.50", "0.710"]
     held = markdown_table(cells, results, "heldout")
-    assert "rainy input" not in held and "| 23.00 |" in held.splitlines()[2]  # nerf: (23 + 25) / 2
+    assert "rainy input" not in held and "fused" not in held and "control" not in held
+    assert _rows(held)["nerf"].startswith("| nerf | 23.00 |") and "| 24.00 |" in _rows(held)["nerf"]
+    assert _rows(held)["oracle 3D"].startswith("| oracle 3D | 40.00 | 0.980 | n/a | 42.00 |")
+
+
+def test_oracle_row_is_na_with_its_reason_on_scene_folders():
+    cells = build_cells(["nerf"], [("mine", "/m"), ("yard", "/y")], [])
+    results = {"cells": {"mine/nerf": _result(25.0), "yard/nerf": _result(26.0)},
+               "oracle": {"mine": {"available": False, "reason": "not a simulated scene folder (no scene.json)"},
+                          "yard": ORACLE["yard"]}}
+    row = _rows(markdown_table(cells, results, "train"))["oracle 3D"]
+    assert row.startswith("| oracle 3D | n/a | n/a | n/a | 41.00 | 0.990 | n/a | n/a |")  # no average
+    report = markdown_report(cells, results)
+    assert "n/a on mine (not a simulated scene folder (no scene.json))" in report
 
 
 def test_unfinished_cells_leave_gaps_not_wrong_averages():
@@ -43,6 +72,7 @@ def test_unfinished_cells_leave_gaps_not_wrong_averages():
     assert "| 25.00 |" in row and row.count("n/a") >= 3 + 3  # street and the average are missing
     report = markdown_report(cells, results)
     assert "Failed cells: street/nerf" in report and "LPIPS: n/a (no weights)" in report
+    assert "| oracle 3D | n/a |" in report and "n/a on yard (not computed), street (not computed)" in report
 
 
 def test_ablation_cells_and_table():
