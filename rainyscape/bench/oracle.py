@@ -30,9 +30,27 @@ def _stamp(folder: Path) -> float:
 
 
 def cached_oracle(entry: dict | None, folder: str) -> bool:
-    """Whether a results-file oracle entry was computed for this folder as it is now."""
-    return bool(entry) and entry.get("folder") == folder and entry.get("samples") == ORACLE_SAMPLES \
+    """Whether a results-file oracle entry was computed for this folder as it is now (an n/a
+    entry only while its reason still holds: a simulator that learnt to re-render gets asked)."""
+    same = bool(entry) and entry.get("folder") == folder and entry.get("samples") == ORACLE_SAMPLES \
         and entry.get("stamp") == _stamp(Path(folder))
+    return same and (entry.get("available") or entry.get("reason") == unavailable(folder))
+
+
+def unavailable(folder: str) -> str | None:
+    """Why a folder has no oracle, when that is known without rendering (None: try it)."""
+    if not (Path(folder) / "scene.json").is_file():
+        return "not a simulated scene folder (no scene.json): no clean scene to re-render"
+    try:
+        from rainyscape.synth.oracle import rerender_clean  # noqa: F401
+    except ImportError:
+        return "this simulator cannot re-render a scene (no rainyscape.synth.oracle)"
+    return None
+
+
+def na_entry(folder: str, reason: str) -> dict:
+    return {"folder": folder, "samples": ORACLE_SAMPLES, "stamp": _stamp(Path(folder)), "available": False,
+            "reason": reason}
 
 
 def scene_oracle(folder: str, cfg) -> dict:
@@ -42,21 +60,22 @@ def scene_oracle(folder: str, cfg) -> dict:
     images exactly as the methods see them)."""
     path = Path(folder)
     entry = {"folder": folder, "samples": ORACLE_SAMPLES, "stamp": _stamp(path), "available": False}
-    if not (path / "scene.json").is_file():
-        return {**entry, "reason": "not a simulated scene folder (no scene.json): no clean scene to re-render"}
-    try:
-        from rainyscape.synth.oracle import rerender_clean
-    except ImportError:
-        return {**entry, "reason": "this simulator cannot re-render a scene (no rainyscape.synth.oracle)"}
+    reason = unavailable(folder)
+    if reason is not None:
+        return {**entry, "reason": reason}
     import torch
     import torch.nn.functional as F
 
     from rainyscape.engine.pipeline import load_scene
-    from rainyscape.errors import DataError
+    from rainyscape.errors import RainyScapeError
     from rainyscape.imaging.metrics import psnr, ssim
+    from rainyscape.synth.oracle import rerender_clean
 
     started = time.perf_counter()
-    scene = load_scene(cfg, path)
+    try:
+        scene = load_scene(cfg, path)
+    except RainyScapeError as exc:
+        return {**entry, "reason": str(exc)}
     if scene.clean_images is None:
         return {**entry, "reason": "the scene has no clean images"}
     out = {**entry, "available": True, "views": {}}
@@ -75,7 +94,7 @@ def scene_oracle(folder: str, cfg) -> dict:
             if indices:
                 out[split] = {k: sum(v) / len(v) for k, v in values.items()}
             out["views"][split] = len(indices)
-    except DataError as exc:
+    except RainyScapeError as exc:
         return {**entry, "reason": str(exc)}
     out["seconds"] = time.perf_counter() - started
     return out
