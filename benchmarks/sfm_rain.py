@@ -36,7 +36,7 @@ def simulator_c2w(sim: Path, size: int) -> np.ndarray:
 def pose_clip(clip: Path, scene: Path, truth: np.ndarray, frames: int, max_features: int, threads: int) -> dict:
     from rainyscape.errors import DataError
     from rainyscape.process.align import aligned_pose_errors, rotation_angle_deg
-    from rainyscape.process.colmap_model import colmap_c2w, posed_images, read_model
+    from rainyscape.dataparsers.colmap_model import colmap_c2w, posed_images, read_model
     from rainyscape.process.frames import FrameOptions
     from rainyscape.process.pipeline import ProcessOptions, process_video
     from rainyscape.process.sfm import SfmOptions

@@ -26,7 +26,7 @@ def main() -> None:
     import skimage.data
     from scipy.spatial.transform import Rotation
 
-    from rainyscape.process.colmap_model import colmap_c2w, posed_images
+    from rainyscape.dataparsers.colmap_model import colmap_c2w, posed_images
     from rainyscape.process.pipeline import ProcessOptions, process_images
     from rainyscape.process.sfm import SfmOptions
 

@@ -12,16 +12,27 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
-# OpenGL-style camera (x right, y up, looking down -z) <-> OpenCV: flip the y and z axes.
-GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))
+# OpenGL-style camera axes (x right, y up, looking down -z) <-> OpenCV (x right, y down, z
+# forward): the camera's y and z axes change sign, i.e. columns 1 and 2 of camera-to-world.
+_GL_CV_SIGNS = (1.0, -1.0, -1.0, 1.0)
 
 
-def opengl_to_opencv(c2w: Tensor) -> Tensor:
-    """Camera-to-world with OpenGL camera axes -> OpenCV camera axes (an involution)."""
-    return c2w @ GL_TO_CV.to(c2w)
+def opengl_to_opencv(c2w: Tensor | np.ndarray) -> Tensor | np.ndarray:
+    """Camera-to-world (..., 4, 4), (..., 3, 4) or a rotation (..., 3, 3) with OpenGL camera
+    axes -> OpenCV camera axes. An involution, so it also converts OpenCV -> OpenGL
+    (:func:`opencv_to_opengl`). Takes a torch tensor or a numpy array and returns the same
+    kind, dtype and device; the package's one conversion between the two conventions."""
+    signs = _GL_CV_SIGNS[:c2w.shape[-1]]
+    if isinstance(c2w, np.ndarray):
+        return c2w * np.asarray(signs, dtype=c2w.dtype) + 0  # + 0: no -0.0 in written files
+    return c2w * torch.tensor(signs, dtype=c2w.dtype, device=c2w.device) + 0
+
+
+opencv_to_opengl = opengl_to_opencv  # the same sign flip, named for the direction written
 
 
 @dataclass

@@ -77,6 +77,20 @@ def test_yaml_round_trip_is_equal(tmp_path):
     assert config.load_yaml(path) == cfg
 
 
+def test_profile_picks_the_recipe_by_device_and_is_recorded(tmp_path):
+    cpu = config.method_config("toy", ["trainer.device=cpu"])
+    assert (cpu.profile, cpu.trainer.max_iters, cpu.field.options.hidden) == ("cpu", 20, 16)
+    gpu = config.method_config("toy", ["trainer.device=cuda"])  # auto: a CUDA run gets the gpu recipe
+    assert (gpu.profile, gpu.trainer.max_iters, gpu.field.options.hidden) == ("gpu", 400, 64)
+    forced = config.method_config("toy", ["profile=gpu", "trainer.device=cpu", "field.hidden=8"])
+    assert (forced.profile, forced.trainer.max_iters, forced.field.options.hidden) == ("gpu", 400, 8)
+    config.save_yaml(forced, tmp_path / "config.yml")
+    assert "profile: gpu" in (tmp_path / "config.yml").read_text()
+    assert config.load_yaml(tmp_path / "config.yml") == forced
+    with pytest.raises(ConfigError, match="'tpu' is not one of auto, cpu, gpu"):
+        config.method_config("toy", ["profile=tpu"])
+
+
 def test_yaml_with_unknown_key_is_rejected(tmp_path):
     cfg = config.method_config("toy")
     data = config.to_dict(cfg)

@@ -135,6 +135,32 @@ def test_transforms_json_blender_angle_and_per_frame_intrinsics(tiny_scene, expo
     _close(s.cameras.c2w, torch.from_numpy(original_c2w(tiny_scene)), 1e-4)
 
 
+def test_one_transforms_writer_shares_or_repeats_intrinsics(tiny_scene, tiny_scene_dir, tmp_path):
+    from rainyscape.dataparsers.transforms_json import transforms_content, write_transforms
+
+    c2w = original_c2w(tiny_scene)[:3]
+    same = {"fl_x": 30.0, "fl_y": 31.0, "cx": 24.0, "cy": 24.0, "w": 48, "h": 48}
+    names = [f"images_rain/{n}" for n in tiny_scene.image_names[:3]]
+    shared = transforms_content(c2w, [same] * 3, names, ply_file_path="points.ply",
+                                applied_transform=np.eye(4), frame_extras=[{"id": i} for i in range(3)])
+    assert {k: shared[k] for k in same} == same and shared["camera_model"] == "PINHOLE"
+    assert set(shared["frames"][0]) == {"file_path", "transform_matrix", "id"}
+    assert shared["ply_file_path"] == "points.ply" and shared["applied_transform"] == np.eye(4)[:3].tolist()
+    per_frame = transforms_content(c2w, [same, {**same, "fl_x": 40.0}, same], names)
+    assert "fl_x" not in per_frame and [f["fl_x"] for f in per_frame["frames"]] == [30.0, 40.0, 30.0]
+    assert per_frame["fl_y"] == 31.0 and "ply_file_path" not in per_frame
+    forced = transforms_content(c2w, [same] * 3, names, per_frame_intrinsics=True)
+    assert "fl_x" not in forced and forced["w"] == 48 and forced["frames"][2]["cy"] == 24.0
+    root = tmp_path / "tj"
+    shutil.copytree(tiny_scene_dir / "images_rain", root / "images_rain")
+    write_transforms(root / "transforms.json", shared)
+    back = TransformsJsonParser(TransformsJsonConfig(normalize=False, holdout_every=0)).parse(root)
+    _close(back.cameras.c2w, torch.from_numpy(c2w), 1e-5)  # OpenCV in, OpenGL on disk, OpenCV out
+    assert back.cameras.fx.tolist() == [30.0] * 3
+    with pytest.raises(ValueError, match="3 poses, 2 intrinsics"):
+        transforms_content(c2w, [same] * 2, names)
+
+
 def test_transforms_json_undistorts_images(exports, tmp_path):
     _, tj_dir = exports
     root = tmp_path / "tj"

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -120,3 +121,36 @@ def test_folder_of_jpeg_photos(rainy_video, tmp_path):
     truth = simulator_c2w(sim)[[int(n[4:7]) - 1 for n in scene.image_names]]
     errors = aligned_pose_errors(scene.cameras.c2w.double().numpy(), truth)
     assert errors.center_rmse_fraction < 0.02 and errors.rotation_deg.max() < 2.0, errors
+
+
+def test_overwrite_replaces_the_scene_and_nothing_else(rainy_video, tmp_path, capsys):
+    from rainyscape.process.output import REPORT, WRITTEN_KEY, scene_files
+
+    sim, _ = rainy_video
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for path in sorted((sim / "images_wo_rain").glob("*.png"))[::2]:
+        shutil.copy(path, photos / path.name)
+    scene_dir = tmp_path / "scene"
+    args = ["images", "--data", str(photos), "--output-dir", str(scene_dir), *FAST]
+    assert run_cli(process_main, args) == 0
+    (scene_dir / "notes.txt").write_text("my notes\n")
+    (scene_dir / "renders").mkdir()
+    (scene_dir / "renders" / "a.bin").write_bytes(bytes(range(256)))
+    capsys.readouterr()
+    assert run_cli(process_main, args) == 2 and "--overwrite" in capsys.readouterr().err
+    (scene_dir / "images" / "001.png").write_bytes(b"stale")  # the earlier run's file, edited
+    assert run_cli(process_main, [*args, "--overwrite"]) == 0
+    assert (scene_dir / "notes.txt").read_text() == "my notes\n"
+    assert (scene_dir / "renders" / "a.bin").read_bytes() == bytes(range(256))
+    assert (scene_dir / "images" / "001.png").read_bytes() != b"stale"
+    report = json.loads((scene_dir / REPORT).read_text())
+    assert report[WRITTEN_KEY] == scene_files(scene_dir)  # user files not claimed
+    assert ColmapParser(ColmapParser.Config(holdout_every=0)).parse(scene_dir).num_images == FRAMES // 2
+    assert not [p.name for p in tmp_path.iterdir() if ".partial-" in p.name]
+    # A file of the user's inside a folder the tool writes: --overwrite refuses, touches nothing.
+    (scene_dir / "sparse" / "0" / "my_edit.txt").write_text("mine\n")
+    before = {p: p.read_bytes() for p in sorted(scene_dir.rglob("*")) if p.is_file()}
+    assert run_cli(process_main, [*args, "--overwrite"]) == 2
+    assert "my_edit.txt: not written by rs-process-data" in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in sorted(scene_dir.rglob("*")) if p.is_file()} == before

@@ -83,6 +83,28 @@ def test_opengl_convention_llff_nerfstudio_maya():
     _assert_rays_hit(_cameras(opengl_to_opencv(c2w_gl)), cols, rows, world, depth)
 
 
+def test_one_gl_cv_conversion_serves_torch_and_numpy():
+    from rainyscape.cameras import opencv_to_opengl
+
+    gen = torch.Generator().manual_seed(2)
+    c2w = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+    for b in range(3):
+        c2w[b, :3, :3] = _random_rotation(gen)
+        c2w[b, :3, 3] = torch.randn(3, generator=gen, dtype=torch.float64)
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+    cv = opengl_to_opencv(c2w)
+    assert isinstance(cv, torch.Tensor) and cv.dtype == torch.float64
+    assert torch.equal(cv, c2w @ flip)
+    assert torch.equal(opencv_to_opengl(cv), c2w)  # an involution
+    as_np = opengl_to_opencv(c2w.numpy().astype(np.float32))
+    assert isinstance(as_np, np.ndarray) and as_np.dtype == np.float32
+    np.testing.assert_allclose(as_np, cv.numpy(), atol=1e-6)
+    np.testing.assert_array_equal(opengl_to_opencv(c2w[:, :3].numpy()), cv[:, :3].numpy())  # 3 x 4
+    np.testing.assert_array_equal(opengl_to_opencv(c2w[:, :3, :3].numpy()), cv[:, :3, :3].numpy())
+    gl = opencv_to_opengl(np.eye(4))
+    assert not np.signbit(gl[gl == 0]).any()  # no -0.0 written to files
+
+
 def test_maya_camera_looks_at_its_target_with_y_up():
     from rainyscape.dataparsers.maya_math import look_at_angles, maya_c2w_opencv
 

@@ -6,9 +6,12 @@ Usage:
   rs-train --list                 methods and components, with their origin
   rs-train method=NAME --help     the method's full config tree with defaults
 
-Keys are dotted paths into the config: field.KEY, rain_head.KEY, losses.TERM.KEY
-(weight, phases, detach or the term's options), postprocess.NAME.KEY, trainer.KEY.
-Swap a component with field=NAME (likewise dataparser=, rain_head=, rain_head=none).
+Keys are dotted paths into the config: field.KEY, rain_head.KEY, phases.PHASE.KEY,
+losses.TERM.KEY (weight, phases, detach or the term's options), postprocess.NAME.KEY,
+trainer.KEY. Swap a component with field=NAME (likewise dataparser=, rain_head=,
+rain_head=none). profile=auto|cpu|gpu picks the method's recipe: auto (the default) runs
+the paper-scale gpu recipe on a CUDA device and the minutes-on-a-laptop cpu recipe
+elsewhere; config.yml records which one ran.
 """
 
 from __future__ import annotations
@@ -56,9 +59,14 @@ def main(argv: list[str]) -> int:
         from rainyscape import config
 
         spec = config.method_spec(method)
-        cfg = config.method_config(method, rest)
-        print(f"{spec.name}: {spec.description}\n\nconfig (override with key=value):")
+        asked = next((a.split("=", 1)[1] for a in reversed(rest) if a.startswith("profile=")), "cpu")
+        cfg = config.method_config(method, [*rest, f"profile={'cpu' if asked == 'auto' else asked}"])
+        print(f"{spec.name}: {spec.description}\n")
+        print(f"config, {cfg.profile} recipe (override with key=value; profile=auto, the default, "
+              "runs the gpu recipe on a CUDA device and the cpu recipe elsewhere):")
         print(config.describe_tree(cfg))
+        print("\ngpu recipe (profile=gpu): the cpu recipe with")
+        print("\n".join(f"  {o}" for o in spec.gpu) or "  (no changes)")
         return 0
     if args.options.resume:
         return _resume(args.options.resume, rest)

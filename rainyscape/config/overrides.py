@@ -19,7 +19,7 @@ from rainyscape.config.schema import (ComponentConfig, LossConfig, MethodSpec, P
 from rainyscape.errors import ConfigError
 
 _LOSS_GENERIC = {f.name for f in fields(LossConfig)} - {"options", "name"}
-TOP_KEYS = ["data", "dataparser", "field", "rain_head", "phases", "losses", "postprocess", "trainer"]
+TOP_KEYS = ["data", "profile", "dataparser", "field", "rain_head", "phases", "losses", "postprocess", "trainer"]
 
 
 def parse_overrides(args: list[str]) -> list[tuple[str, str]]:
@@ -43,8 +43,8 @@ def apply_overrides(cfg: PipelineConfig, overrides: list[tuple[str, str]]) -> Pi
     for key, value in sorted(overrides, key=lambda kv: kv[0].count(".")):
         parts = key.split(".")
         head = parts[0]
-        if head == "method":
-            raise ConfigError("method= picks the method; it cannot be overridden inside a config")
+        if head in ("method", "profile"):
+            raise ConfigError(f"{head}= picks the method's recipe; it cannot be changed inside a config")
         if head == "data" and len(parts) == 1:
             cfg.data = value
         elif head in ("dataparser", "field", "rain_head") and len(parts) == 1:
@@ -138,9 +138,29 @@ def method_spec(name: str) -> MethodSpec:
 
 
 def method_config(name: str, overrides: list[str] | None = None) -> PipelineConfig:
-    """The method's typed config with ``key=value`` overrides applied and validated."""
-    cfg = materialize(copy.deepcopy(method_spec(name).config))
-    return apply_overrides(cfg, parse_overrides(overrides or []))
+    """The method's typed config, in the recipe ``profile=`` picks (auto: gpu when the run's
+    device is CUDA), with the other ``key=value`` overrides applied and validated."""
+    spec = method_spec(name)
+    pairs = parse_overrides(overrides or [])
+    profile = next((v for k, v in reversed(pairs) if k == "profile"), "auto")
+    pairs = [(k, v) for k, v in pairs if k != "profile"]
+    cfg = materialize(copy.deepcopy(spec.config))
+    if profile == "auto":
+        device = next((v for k, v in reversed(pairs) if k == "trainer.device"), cfg.trainer.device)
+        profile = "gpu" if uses_cuda(device) else "cpu"
+    cfg = dataclasses.replace(cfg, profile=profile)
+    if profile == "gpu":
+        cfg = apply_overrides(cfg, parse_overrides(spec.gpu))
+    return apply_overrides(cfg, pairs)
+
+
+def uses_cuda(device: str) -> bool:
+    """Whether a run on ``device`` (auto | cpu | cuda[:N]) trains on a CUDA GPU."""
+    if device == "auto":
+        import torch  # only here: choosing the recipe for auto needs to look
+
+        return torch.cuda.is_available()
+    return device.startswith("cuda")
 
 
 def describe_tree(cfg: PipelineConfig) -> str:

@@ -22,6 +22,7 @@ from rainyscape import registry
 from rainyscape.errors import ConfigError
 
 DETACHABLE = ("", "rendered", "rain")  # what a loss term may stop gradients into
+PROFILES = ("cpu", "gpu")  # a method's recipe for a laptop CPU, and its paper-scale one
 
 
 def bounded(default: Any, lo: float | None = None, hi: float | None = None, **kwargs) -> Any:
@@ -89,6 +90,7 @@ class PipelineConfig:
     postprocess: dict[str, ComponentConfig] = field(default_factory=dict)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     data: str = ""  # scene folder; empty runs the embedded demo scene
+    profile: str = "cpu"  # which recipe of the method this is (cpu | gpu)
 
     def heads(self) -> dict[str, ComponentConfig]:
         """The image-layer heads of the pipeline, by config key."""
@@ -97,9 +99,13 @@ class PipelineConfig:
 
 @dataclass
 class MethodSpec:
+    """A method: its CPU recipe (minutes on a laptop) and the overrides that turn it into its
+    GPU recipe (the paper's scale). Recipes hold component options as plain dicts."""
+
     name: str
     description: str
-    config: PipelineConfig  # the recipe: component options as plain dicts
+    config: PipelineConfig  # the CPU recipe
+    gpu: list[str] = field(default_factory=list)  # key=value overrides: the GPU recipe
 
 
 # --------------------------------------------------------------------------- types
@@ -261,6 +267,8 @@ def default_phases(name: str, method_phases: list[str]) -> tuple[str, ...]:
 def materialize(cfg: PipelineConfig) -> PipelineConfig:
     """A copy of ``cfg`` with typed component options, checked phases and loss terms."""
     out = copy.deepcopy(cfg)
+    if cfg.profile not in PROFILES:
+        raise ConfigError(f"profile: '{cfg.profile}' is not one of auto, {', '.join(PROFILES)}")
     if not cfg.phases:
         raise ConfigError("the method declares no phases")
     out.phases = {name: build_dataclass(PhaseConfig, _fields_of(p), f"phases.{name}")

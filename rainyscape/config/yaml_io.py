@@ -35,6 +35,7 @@ def to_dict(cfg: PipelineConfig) -> dict:
     return {
         "rainyscape_version": __version__,
         "method": cfg.method,
+        "profile": cfg.profile,
         "data": cfg.data,
         "dataparser": comp(cfg.dataparser),
         "field": comp(cfg.field),
@@ -74,6 +75,7 @@ def from_dict(data: dict) -> PipelineConfig:
             raise ConfigError("phases: expected a mapping of phase names to options")
         cfg = PipelineConfig(
             method=data["method"],
+            profile=data.get("profile", "cpu"),
             data=data.get("data", ""),
             dataparser=comp(data["dataparser"]),
             field=comp(data["field"]),

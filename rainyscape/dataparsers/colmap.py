@@ -19,7 +19,7 @@ from rainyscape.components import DataParser
 from rainyscape.dataparsers.base import CommonParserConfig, assemble_scene
 from rainyscape.dataparsers.images import read_rgb
 from rainyscape.errors import DataError
-from rainyscape.process.colmap_model import colmap_c2w, find_model, model_points, posed_images
+from rainyscape.dataparsers.colmap_model import colmap_c2w, find_model, model_points, posed_images
 from rainyscape.scene import SceneData
 
 MAX_POINTS_FOR_BOUNDS = 20_000

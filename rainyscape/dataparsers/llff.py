@@ -67,13 +67,12 @@ def read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def llff_to_opencv(rot: np.ndarray) -> np.ndarray:
-    """(down, right, back) columns -> OpenCV (right, down, forward)."""
+    """(down, right, back) columns -> OpenCV (right, down, forward), and back: an involution
+    (:func:`opencv_to_llff`)."""
     return np.stack([rot[..., 1], rot[..., 0], -rot[..., 2]], -1)
 
 
-def opencv_to_llff(rot: np.ndarray) -> np.ndarray:
-    """OpenCV (right, down, forward) columns -> LLFF (down, right, back)."""
-    return np.stack([rot[..., 1], rot[..., 0], -rot[..., 2]], -1)
+opencv_to_llff = llff_to_opencv  # the same column swap, named for the direction written
 
 
 def _focus_in_front(centers: np.ndarray, forward: np.ndarray) -> float | None:

@@ -1,4 +1,4 @@
-"""transforms-json: nerfstudio / instant-ngp / Blender ``transforms.json``.
+"""transforms-json: nerfstudio / instant-ngp / Blender ``transforms.json``, read and written.
 
 Camera-to-world matrices are OpenGL (x right, y up, looking down -z). Intrinsics come from
 ``fl_x`` / ``fl_y`` / ``cx`` / ``cy`` / ``w`` / ``h`` (top level, overridable per frame) or
@@ -6,6 +6,9 @@ Blender's ``camera_angle_x`` (and ``camera_angle_y``). Distortion (``k1 k2 k3 k4
 ``camera_model`` OPENCV or OPENCV_FISHEYE) is removed from the images with OpenCV, keeping
 the pinhole intrinsics. Clean images: a folder named by ``clean=`` holding the same file
 names, or (``auto``) the authors' ``_rain`` -> ``_wo_rain`` sibling of the image folder.
+
+:func:`transforms_content` is the package's one writer of the format (pinhole cameras):
+rs-process-data's scene folders, SceneData exports and rs-export all go through it.
 """
 
 from __future__ import annotations
@@ -14,20 +17,68 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Mapping, Sequence
 
 import cv2
 import numpy as np
 import torch
 
-from rainyscape.cameras import Cameras, opengl_to_opencv
+from rainyscape.cameras import Cameras, opencv_to_opengl, opengl_to_opencv
 from rainyscape.components import DataParser
 from rainyscape.dataparsers.base import CommonParserConfig, assemble_scene
 from rainyscape.dataparsers.images import IMAGE_SUFFIXES, clean_image_paths, read_rgb
 from rainyscape.errors import DataError
 from rainyscape.scene import SceneData
 
+PINHOLE_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")  # what the writer stores per camera
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2",
                   "camera_angle_x", "camera_angle_y", "camera_model")
+
+
+def transforms_content(c2w: np.ndarray, intrinsics: Sequence[Mapping[str, float]],
+                       file_paths: Sequence[str], *, per_frame_intrinsics: bool = False,
+                       frame_extras: Sequence[Mapping] | None = None, ply_file_path: str | None = None,
+                       applied_transform: np.ndarray | None = None) -> dict:
+    """``transforms.json`` content for N pinhole cameras (``camera_model`` PINHOLE).
+
+    ``c2w``: (N, 4, 4) camera-to-world with OpenCV camera axes (the package's convention),
+    written with OpenGL axes. ``intrinsics``: per frame ``fl_x fl_y cx cy`` (pixels) and
+    ``w h``. A key with one value for every frame is written once at the top level, else per
+    frame; with ``per_frame_intrinsics`` ``fl_x fl_y cx cy`` stay per frame regardless.
+    ``frame_extras``: more keys per frame (e.g. ``colmap_im_id``). ``ply_file_path``: the
+    sparse points, relative to the JSON. ``applied_transform``: the world transform applied
+    to the input's poses (nerfstudio's key), 3 x 4 or 4 x 4, written as 3 x 4.
+    """
+    c2w = np.asarray(c2w, dtype=np.float64).reshape(-1, 4, 4)
+    n = len(c2w)
+    extras = list(frame_extras) if frame_extras is not None else [{}] * n
+    if not len(intrinsics) == len(file_paths) == len(extras) == n:
+        raise ValueError(f"transforms_content: {n} poses, {len(intrinsics)} intrinsics, "
+                         f"{len(file_paths)} file paths and {len(extras)} frame extras")
+    values = {k: [int(cam[k]) if k in ("w", "h") else float(cam[k]) for cam in intrinsics]
+              for k in PINHOLE_KEYS}
+    shared = [k for k in PINHOLE_KEYS if n and len(set(values[k])) == 1
+              and not (per_frame_intrinsics and k not in ("w", "h"))]
+    c2w_gl = opencv_to_opengl(c2w)
+    frames = []
+    for i, path in enumerate(file_paths):
+        frame = {"file_path": str(path), "transform_matrix": c2w_gl[i].tolist()}
+        frame.update({k: values[k][i] for k in PINHOLE_KEYS if k not in shared})
+        frame.update(extras[i])
+        frames.append(frame)
+    out: dict = {"camera_model": "PINHOLE", **{k: values[k][0] for k in shared}, "frames": frames}
+    if applied_transform is not None:
+        out["applied_transform"] = np.asarray(applied_transform, dtype=np.float64)[:3, :4].tolist()
+    if ply_file_path:
+        out["ply_file_path"] = str(ply_file_path)
+    return out
+
+
+def write_transforms(path: str | Path, content: dict) -> Path:
+    """Write :func:`transforms_content` to ``path`` (indented JSON)."""
+    path = Path(path)
+    path.write_text(json.dumps(content, indent=2) + "\n")
+    return path
 
 
 @dataclass

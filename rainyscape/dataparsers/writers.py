@@ -7,16 +7,15 @@ The rainy images go to ``images_rain/`` and the clean ones (when known) to
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from rainyscape.cameras import opengl_to_opencv
-from rainyscape.dataparsers.llff import opencv_to_llff
-from rainyscape.scene import SceneData
 from rainyscape.dataparsers.images import write_png
+from rainyscape.dataparsers.llff import opencv_to_llff
+from rainyscape.dataparsers.transforms_json import transforms_content, write_transforms
+from rainyscape.scene import SceneData
 
 RAINY, CLEAN = "images_rain", "images_wo_rain"
 
@@ -80,13 +79,10 @@ def _bounds(scene: SceneData) -> np.ndarray:
 def transforms_meta(scene: SceneData, file_paths: list[str]) -> dict:
     """nerfstudio ``transforms.json`` content: OpenGL camera-to-world in the input's world
     frame and per-frame pinhole intrinsics, one frame per view with ``file_paths``."""
-    c2w_gl = opengl_to_opencv(torch.from_numpy(original_c2w(scene))).numpy()
     cams = scene.cameras
-    frames = [{"file_path": fp, "transform_matrix": c2w_gl[i].tolist(),
-               "fl_x": float(cams.fx[i]), "fl_y": float(cams.fy[i]),
-               "cx": float(cams.cx[i]), "cy": float(cams.cy[i])}
-              for i, fp in enumerate(file_paths)]
-    return {"camera_model": "PINHOLE", "w": cams.width, "h": cams.height, "frames": frames}
+    intrinsics = [{"fl_x": float(cams.fx[i]), "fl_y": float(cams.fy[i]), "cx": float(cams.cx[i]),
+                   "cy": float(cams.cy[i]), "w": cams.width, "h": cams.height} for i in range(len(cams))]
+    return transforms_content(original_c2w(scene), intrinsics, file_paths, per_frame_intrinsics=True)
 
 
 def write_transforms_json(scene: SceneData, out: str | Path) -> Path:
@@ -94,5 +90,5 @@ def write_transforms_json(scene: SceneData, out: str | Path) -> Path:
     out = Path(out)
     meta = transforms_meta(scene, [f"{RAINY}/{Path(n).stem}.png" for n in scene.image_names])
     _write_images(scene, out)
-    (out / "transforms.json").write_text(json.dumps(meta, indent=2) + "\n")
+    write_transforms(out / "transforms.json", meta)
     return out

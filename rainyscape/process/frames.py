@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rainyscape.dataparsers.images import IMAGE_SUFFIXES, natural_key
+from rainyscape.dataparsers.images import IMAGE_SUFFIXES, natural_key, write_png
 from rainyscape.errors import DataError
 
 MIN_VIEWS = 2  # two-view geometry is the least SfM can start from
@@ -90,24 +90,26 @@ def count_video_frames(path: Path) -> int:
     return int(frames or 0)
 
 
-def _write_png(path: Path, rgb: np.ndarray) -> None:
-    import imageio.v3 as iio
-
-    iio.imwrite(path, rgb)  # PNG through pillow: no EXIF block is written
-
-
-def extract_video_frames(video: Path, out_dir: Path, options: FrameOptions,
-                         progress: bool = True) -> list[Frame]:
-    """Write the sharpest frame of each window of the clip as ``frame_00001.png`` ..."""
-    import imageio_ffmpeg
-    from tqdm import tqdm
-
-    check_crop(options.crop)
+def check_video(video: Path) -> int:
+    """The clip's frame count, after checking it is a readable video with enough frames
+    (DataError naming the file otherwise). Reads the file only."""
     total = count_video_frames(video)
     if total == 0:
         raise DataError(f"{video}: the video has no frames")
     if total < MIN_VIEWS:
         raise DataError(f"{video}: too few frames ({total}); SfM needs at least {MIN_VIEWS} views")
+    return total
+
+
+def extract_video_frames(video: Path, out_dir: Path, options: FrameOptions,
+                         progress: bool = True, total: int | None = None) -> list[Frame]:
+    """Write the sharpest frame of each window of the clip as ``frame_00001.png`` ...
+    (``total``: the frame count :func:`check_video` returned, to skip counting again)."""
+    import imageio_ffmpeg
+    from tqdm import tqdm
+
+    check_crop(options.crop)
+    total = total or check_video(video)
     windows = frame_windows(total, options.num_frames)
     best: dict[int, tuple[float, int, np.ndarray]] = {}
     reader = imageio_ffmpeg.read_frames(str(video))
@@ -137,12 +139,14 @@ def extract_video_frames(video: Path, out_dir: Path, options: FrameOptions,
     for k, window in enumerate(sorted(best)):
         score, index, rgb = best[window]
         name = f"frame_{k + 1:05d}.png"
-        _write_png(out_dir / name, rgb)
+        write_png(out_dir / name, rgb)  # PNG: no EXIF block
         frames.append(Frame(name, str(index), score))
     return frames
 
 
 def list_photos(folder: Path) -> list[Path]:
+    """The photos of ``folder`` in natural order, after checking there are enough of them and
+    no two share a name (DataError naming the folder otherwise). Reads the listing only."""
     if not folder.is_dir():
         raise DataError(f"{folder}: no such folder")
     files = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
@@ -151,6 +155,11 @@ def list_photos(folder: Path) -> list[Path]:
         raise DataError(f"{folder}: no images found (looked for {', '.join(IMAGE_SUFFIXES)})")
     if len(files) < MIN_VIEWS:
         raise DataError(f"{folder}: too few images ({len(files)}); SfM needs at least {MIN_VIEWS} views")
+    stems = [p.stem for p in files]
+    duplicates = sorted({s for s in stems if stems.count(s) > 1})
+    if duplicates:
+        raise DataError(f"{folder}: several images share the name '{duplicates[0]}' "
+                        "(different extensions); rename them")
     return files
 
 
@@ -180,18 +189,13 @@ def copy_photos(folder: Path, out_dir: Path, options: FrameOptions, progress: bo
 
     check_crop(options.crop)
     files = list_photos(folder)
-    stems = [p.stem for p in files]
-    duplicates = sorted({s for s in stems if stems.count(s) > 1})
-    if duplicates:
-        raise DataError(f"{folder}: several images share the name '{duplicates[0]}' "
-                        "(different extensions); rename them")
     out_dir.mkdir(parents=True, exist_ok=True)
     frames, sizes = [], {}
     for path in tqdm(files, desc="reading photos", unit="image", disable=not progress):
         rgb = prepare_frame(read_photo(path), options)
         sizes.setdefault(rgb.shape[:2], path.name)
         name = f"{path.stem}.png"
-        _write_png(out_dir / name, rgb)
+        write_png(out_dir / name, rgb)  # PNG: no EXIF block
         frames.append(Frame(name, path.name, laplacian_variance(rgb)))
     if len(sizes) > 1:
         shown = ", ".join(f"{n} is {w}x{h}" for (h, w), n in sizes.items())

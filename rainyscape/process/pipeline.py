@@ -4,30 +4,30 @@ Scene folder layout (the layout 3DGS and nerfstudio tools read too):
   images/               undistorted pinhole frames (registered ones)
   sparse/0/             their COLMAP model (cameras, images, points3D; binary)
   transforms.json       nerfstudio-compatible cameras; sparse_pc.ply its points
-  process_report.json   frames kept, registration report, timings
+  process_report.json   frames kept, registration report, timings, the files written
   colmap/               work files: extracted frames, database, raw models (kept for inspection)
+
+Inputs are checked before anything is written; the scene is built beside the output folder
+and moved into place when complete (``process.output``: what may be replaced, and how).
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
-import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Iterator
 
-from rainyscape.errors import DataError
-from rainyscape.process.frames import Frame, FrameOptions, copy_photos, extract_video_frames
+from rainyscape.process.frames import (Frame, FrameOptions, check_crop, check_video, copy_photos,
+                                       extract_video_frames, list_photos)
+from rainyscape.process.output import REPORT, WORK_DIR, WRITTEN_KEY, scene_files, staged_scene
 from rainyscape.process.sfm import (Registration, SfmOptions, check_registration,
                                     colmap_log, extract_features, incremental_mapping,
                                     largest_model, match_features, registration_report, undistort)
 from rainyscape.process.writers import write_nerfstudio_files
-
-FINISHED_OUTPUTS = ("images", "sparse", "transforms.json", "sparse_pc.ply", "process_report.json")
-WORK_DIR = "colmap"
 
 
 @dataclass
@@ -67,33 +67,27 @@ class ProcessResult:
     warning: str | None
 
 
-def prepare_output(scene_dir: Path, overwrite: bool) -> Path:
-    """Make the output folder; clear our own files from an earlier run (only with overwrite)."""
-    if scene_dir.exists() and not scene_dir.is_dir():
-        raise DataError(f"{scene_dir}: the output path is a file, not a folder")
-    done = [n for n in FINISHED_OUTPUTS if (scene_dir / n).exists()]
-    if done and not overwrite:
-        raise DataError(f"{scene_dir}: already holds a processed scene ({', '.join(done)}); "
-                        "pass --overwrite to replace it, or choose another --output-dir")
-    for name in (*done, WORK_DIR):
-        path = scene_dir / name
-        if path.is_dir():
-            shutil.rmtree(path)
-        elif path.exists():
-            path.unlink()
-    work = scene_dir / WORK_DIR
-    work.mkdir(parents=True)
-    return work
-
-
 def _run(kind: str, source: Path, scene_dir: Path, options: ProcessOptions) -> ProcessResult:
     options.sfm.validate()
-    work = prepare_output(scene_dir, options.overwrite)
+    check_crop(options.frames.crop)
+    total = check_video(source) if kind == "video" else len(list_photos(source))
+    with staged_scene(source, scene_dir, options.overwrite) as staging:
+        frames, report, warning = _build(kind, source, staging, total, options)
+    if options.progress:
+        print(f"scene written to {scene_dir} (train with: rs-train method=rainyscape-3dgs "
+              f"data={scene_dir})", file=sys.stderr)
+    return ProcessResult(scene_dir, frames, report, warning)
+
+
+def _build(kind: str, source: Path, scene_dir: Path, total: int, options: ProcessOptions
+           ) -> tuple[list[Frame], Registration, str | None]:
+    """The whole scene in ``scene_dir`` (the staging folder)."""
+    work = scene_dir / WORK_DIR
     frames_dir = work / "frames"
     stages = Stages(count=6, progress=options.progress)
     with stages.stage("frames from the video" if kind == "video" else "reading the photos"):
         if kind == "video":
-            frames = extract_video_frames(source, frames_dir, options.frames, options.progress)
+            frames = extract_video_frames(source, frames_dir, options.frames, options.progress, total)
         else:
             frames = copy_photos(source, frames_dir, options.frames, options.progress)
     names = [f.name for f in frames]
@@ -129,12 +123,10 @@ def _run(kind: str, source: Path, scene_dir: Path, options: ProcessOptions) -> P
         "options": {"frames": asdict(options.frames), "sfm": asdict(options.sfm)},
         "timings_s": stages.timings,
         "warning": warning,
+        WRITTEN_KEY: scene_files(scene_dir),
     }
-    (scene_dir / "process_report.json").write_text(json.dumps(content, indent=2))
-    if options.progress:
-        print(f"scene written to {scene_dir} (train with: rs-train method=rainyscape-3dgs "
-              f"data={scene_dir})", file=sys.stderr)
-    return ProcessResult(scene_dir, frames, report, warning)
+    (scene_dir / REPORT).write_text(json.dumps(content, indent=2))
+    return frames, report, warning
 
 
 def process_video(video: Path, scene_dir: Path, options: ProcessOptions | None = None) -> ProcessResult:

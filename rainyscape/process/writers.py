@@ -1,63 +1,36 @@
 """Scene-folder side files: nerfstudio's ``transforms.json`` and ``sparse_pc.ply``, read from
 the undistorted COLMAP model so that other tools can open the scene too.
 
-nerfstudio wants camera-to-world with OpenGL camera axes (x right, y up, looking down -z); the
-world frame is kept as COLMAP's, so ``applied_transform`` is the identity.
+Both go through the package's one writer of each format (``dataparsers.transforms_json``,
+``formats.ply``). The world frame is kept as COLMAP's, so ``applied_transform`` is the identity.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from rainyscape.process.colmap_model import (colmap_c2w, model_points, pinhole_intrinsics,
-                                             posed_images)
+from rainyscape.dataparsers.colmap_model import (colmap_c2w, model_points, pinhole_intrinsics,
+                                                 posed_images)
+from rainyscape.dataparsers.transforms_json import transforms_content, write_transforms
+from rainyscape.formats.ply import write_ply
+
+PLY_NAME = "sparse_pc.ply"
 
 
-def write_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
-    """Binary little-endian PLY with float x, y, z and uchar red, green, blue."""
-    rows = np.zeros(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                     ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    rows["x"], rows["y"], rows["z"] = xyz.T
-    rows["red"], rows["green"], rows["blue"] = rgb.T
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {len(xyz)}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(rows.tobytes())
-
-
-def transforms_json(model, image_prefix: str = "images", ply_name: str | None = "sparse_pc.ply") -> dict:
-    """nerfstudio ``transforms.json`` content for the registered images of a pinhole model."""
-    images = posed_images(model)
-    intrinsics = {im.camera_id: pinhole_intrinsics(model.cameras[im.camera_id]) for im in images}
-    shared = len({tuple(v.values()) for v in intrinsics.values()}) == 1
-    gl_flip = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera axes -> OpenGL
-    frames = []
-    for im in images:
-        frame = {"file_path": f"{image_prefix}/{im.name}",
-                 "transform_matrix": (colmap_c2w(im) @ gl_flip).tolist(),
-                 "colmap_im_id": int(im.image_id)}
-        if not shared:
-            frame.update(intrinsics[im.camera_id])
-        frames.append(frame)
-    out: dict = {"camera_model": "OPENCV"}
-    if shared:
-        out.update(next(iter(intrinsics.values())))
-    out.update({"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames,
-                "applied_transform": np.eye(4)[:3].tolist()})
-    if ply_name:
-        out["ply_file_path"] = ply_name
-    return out
-
-
-def write_nerfstudio_files(model, scene_dir: Path) -> None:
-    """``transforms.json`` and ``sparse_pc.ply`` in the scene folder."""
+def write_nerfstudio_files(model, scene_dir: Path, image_prefix: str = "images") -> None:
+    """``transforms.json`` (the registered images of a pinhole model) and ``sparse_pc.ply``
+    (its points: float x y z, uchar red green blue) in the scene folder."""
     xyz, rgb = model_points(model)
-    write_ply(scene_dir / "sparse_pc.ply", xyz, rgb)
-    content = transforms_json(model)
-    (scene_dir / "transforms.json").write_text(json.dumps(content, indent=2))
+    columns = {axis: xyz[:, i].astype(np.float32) for i, axis in enumerate("xyz")}
+    columns.update({channel: rgb[:, i] for i, channel in enumerate(("red", "green", "blue"))})
+    write_ply(scene_dir / PLY_NAME, columns)
+    images = posed_images(model)
+    content = transforms_content(
+        np.array([colmap_c2w(im) for im in images]).reshape(-1, 4, 4),
+        [pinhole_intrinsics(model.cameras[im.camera_id]) for im in images],
+        [f"{image_prefix}/{im.name}" for im in images],
+        frame_extras=[{"colmap_im_id": int(im.image_id)} for im in images],
+        ply_file_path=PLY_NAME, applied_transform=np.eye(4))
+    write_transforms(scene_dir / "transforms.json", content)

@@ -90,4 +90,5 @@ toy_method = MethodSpec(
         trainer=TrainerConfig(max_iters=20, eval_every=0, log_every=5,
                               checkpoint_every=10, progress=False),
     ),
+    gpu=["trainer.max_iters=400", "field.hidden=64"],  # its "paper-scale" recipe
 )
