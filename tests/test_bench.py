@@ -95,20 +95,35 @@ def test_fingerprint_changes_with_the_budget():
 
 @pytest.mark.slow
 def test_cells_run_in_parallel_then_resume_as_done(tmp_path, tiny_scene_dir):
+    """Two cells at once; unequal budgets run only with allow_unequal=true, and the tables then
+    hold every row: oracle, input, methods, fused, fused − input and the control."""
     out = tmp_path / "results"
-    args = ["rs-bench", "methods=nerf,robust-nerf", f"scenes={tiny_scene_dir}", "iters=4", f"out={out}",
+    args = ["rs-bench", "methods=nerf,rainyscape-nerf", f"scenes={tiny_scene_dir}", "iters=4", f"out={out}",
             "name=tiny", "device=cpu", "jobs=2", "threads=1", "trainer.eval_every=0"]
+    refused = subprocess.run(args, capture_output=True, text=True)
+    assert refused.returncode == 2 and "allow_unequal=true" in refused.stderr and not out.exists()
+    args.append("allow_unequal=true")
     first = subprocess.run(args, capture_output=True, text=True)
     assert first.returncode == 0, first.stdout + first.stderr
+    assert "warning: unequal budgets (allow_unequal=true): field 'grid'" in first.stdout
     results = json.loads((out / "tiny.json").read_text())
-    assert sorted(c["method"] for c in results["cells"].values()) == ["nerf", "robust-nerf"]
+    assert sorted(c["method"] for c in results["cells"].values()) == ["nerf", "rainyscape-nerf"]
     cell = next(c for c in results["cells"].values() if c["method"] == "nerf")
     assert cell["status"] == "finished" and cell["iters"] == 4 and cell["how"] == "trained"
     assert cell["summary"]["train_psnr"] > 5 and cell["peak_rss_mib"] > 50 and cell["train_s"] > 0
+    assert cell["cpu_s"] > 0 and cell["budget"]["steps"] == 4 and cell["budget"]["pixels_per_step"] == 1024
     assert cell["views"]["width"] == 48  # it trained on the scene it was given
     assert results["machine"]["cores"] >= 1 and results["command"].startswith("rs-bench methods=nerf")
+    assert results["oracle"][tiny_scene_dir.name]["folder"] == str(tiny_scene_dir.resolve())
+    ours = next(c for c in results["cells"].values() if c["method"] == "rainyscape-nerf")
+    assert "train_rain-mask-fusion_coverage" in ours["summary"]
     table = (out / "tiny.md").read_text()
-    assert "| rainy input |" in table and "| nerf |" in table and "| robust-nerf |" in table
+    train = table.split("## De-raining at the training views")[1].split("## Novel views")[0]
+    labels = [line.split(" | ")[0].strip("| ") for line in train.splitlines() if line.startswith("| ")][1:]
+    assert labels[:6] == ["oracle 3D", "rainy input", "nerf", "rainyscape-nerf", "rainyscape-nerf + rain-mask-fusion",
+                          "↳ fused − input"]
+    assert labels[6].startswith("↳ control: random mask, same coverage")
+    assert "(≠ nerf: 4 × 1024)" in train and "**Unequal budgets within a field**" in train
     second = subprocess.run(args, capture_output=True, text=True)
     assert second.returncode == 0 and second.stdout.count("done earlier, skipped") == 2
     assert json.loads((out / "tiny.json").read_text())["cells"] == results["cells"]

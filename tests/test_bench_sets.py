@@ -46,6 +46,13 @@ def test_cpu_set_resolves_to_its_sizes_and_budgets():
     assert b.pixels_per_step == 128 * 128  # a whole view of the set's size
 
 
+def test_every_cell_trains_the_recipe_its_budget_was_checked_for():
+    assert _plan(scenes="demo", device="cpu").overrides[0] == "profile=cpu"
+    assert _plan(scenes="demo", device="cpu", profile="gpu").overrides[0] == "profile=gpu"
+    with pytest.raises(ConfigError, match="profile must be"):
+        _plan(scenes="demo", profile="tpu")
+
+
 def test_paper_set_and_explicit_overrides():
     plan = _plan(scenes="paper")
     assert all((p.width, p.height, p.rows, p.cols) == (512, 512, 5, 10) for p in plan.scenes)

@@ -19,6 +19,8 @@ class BenchOptions:
     out: str = field(default="benchmarks/results", metadata={"help": "results folder"})
     name: str = field(default="", metadata={"help": "results file name (default: today's date)"})
     device: str = field(default="auto", metadata={"help": "auto | cpu | cuda"})
+    profile: str = field(default="auto", metadata={"help": "every method's recipe: cpu | gpu | auto (gpu when "
+                                                           "the cells train on CUDA)"})
     ablation: str = field(default="", metadata={"help": "a scene for the loss ablation table (default: none)"})
     ablation_method: str = field(default="rainyscape-nerf", metadata={"help": "the method the ablation varies"})
     scene_width: int = field(default=0, metadata={"help": "simulated scenes: image width (0: the set's or "

@@ -13,6 +13,8 @@ from rainyscape.bench.matrix import Cell, build_cells, cell_config, validate_cel
 from rainyscape.bench.options import BenchOptions
 from rainyscape.bench.scenes import ScenePlan, plan_scene, planned_image_size
 from rainyscape.bench.sets import scene_set
+from rainyscape.config.overrides import uses_cuda
+from rainyscape.config.schema import PROFILES
 from rainyscape.errors import ConfigError
 
 
@@ -92,7 +94,12 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
         if getattr(opts, key) < 0:
             raise ConfigError(f"rs-bench: {key} must be >= 0, got {getattr(opts, key)}")
     sset = scene_set(opts.scenes)
-    base = [f"trainer.max_iters={opts.iters}"] if opts.iters else []
+    if opts.profile not in ("auto", *PROFILES):
+        raise ConfigError(f"rs-bench: profile must be auto, {' or '.join(PROFILES)}, got '{opts.profile}'")
+    # The recipe is fixed here, for every cell alike, so that the budgets checked below are the
+    # ones the cells train with (and a cell's fingerprint says which recipe it ran).
+    profile = opts.profile if opts.profile != "auto" else "gpu" if uses_cuda(opts.device) else "cpu"
+    base = [f"profile={profile}"] + ([f"trainer.max_iters={opts.iters}"] if opts.iters else [])
     # Every method and override must be valid before any scene is simulated or cell trained.
     validate_cells(build_cells(methods, [("", "")], base + overrides,
                                ("", "") if opts.ablation else None, opts.ablation_method))

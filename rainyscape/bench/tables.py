@@ -213,8 +213,8 @@ def markdown_report(cells: list[Cell], results: dict) -> str:
     if main:
         parts += ["## De-raining at the training views (the paper's Table I protocol)", "",
                   markdown_table(main, results, "train"), ""]
-        parts += [*oracle_notes(main, results), "", *fusion_notes(main, results), "",
-                  *budget_notes(main, results), ""]
+        for note in oracle_notes(main, results) + fusion_notes(main, results) + budget_notes(main, results):
+            parts += [note, ""]
         parts += ["## Novel views (held-out views)", "", markdown_table(main, results, "heldout"), ""]
     if ablation:
         parts += [f"## Loss ablation ({ablation[0].method} on {ablation[0].scene}; the paper's Table II)", "",
