@@ -72,7 +72,7 @@ def test_unfinished_cells_leave_gaps_not_wrong_averages():
     assert "| 25.00 |" in row and row.count("n/a") >= 3 + 3  # street and the average are missing
     report = markdown_report(cells, results)
     assert "Failed cells: street/nerf" in report and "LPIPS: n/a (no weights)" in report
-    assert "| oracle 3D | n/a |" in report and "n/a on yard (not computed), street (not computed)" in report
+    assert "| oracle 3D | n/a |" in report and "n/a on yard, street (not computed)" in report
 
 
 def test_ablation_cells_and_table():

@@ -150,13 +150,16 @@ def markdown_table(cells: list[Cell], results: dict, prefix: str) -> str:
 def oracle_notes(cells: list[Cell], results: dict) -> list[str]:
     scenes = list(dict.fromkeys(c.scene for c in cells))
     oracle = results.get("oracle", {})
-    missing = [f"{s} ({oracle[s].get('reason', 'not computed')})" if s in oracle else f"{s} (not computed)"
-               for s in scenes if not oracle.get(s, {}).get("available")]
+    why: dict[str, list[str]] = {}  # reason -> scenes, so one reason is said once
+    for s in scenes:
+        if not oracle.get(s, {}).get("available"):
+            why.setdefault(oracle.get(s, {}).get("reason", "not computed"), []).append(s)
+    missing = [f"{', '.join(names)} ({reason})" for reason, names in why.items()]
     text = (f"`{ORACLE}`: the clean scene itself re-rendered ({ORACLE_SAMPLES} x {ORACLE_SAMPLES} base samples "
             "per pixel, an independent sample set) against the stored clean images: what a perfect 3D "
             "reconstruction scores, the ceiling of each column.")
     if missing:
-        text += " n/a on " + ", ".join(missing) + "."
+        text += " n/a on " + "; on ".join(missing) + "."
     return [text]
 
 
