@@ -11,29 +11,58 @@ from rainyscape.bench.matrix import ABLATIONS, Cell, build_cells
 from rainyscape.bench.tables import markdown_report, markdown_table
 
 
-def _result(psnr: float, post: bool = False, train_s: float = 10.0, mem: float = 500.0) -> dict:
+def _result(psnr: float, post: bool = False, train_s: float = 10.0, mem: float = 500.0, scene: str = "") -> dict:
     summary = {"rainy_input_psnr": 20.0, "rainy_input_ssim": 0.7, "train_psnr": psnr, "train_ssim": 0.8,
                "heldout_psnr": psnr - 2, "heldout_ssim": 0.75}
     if post:
-        summary.update({"train_fusion_psnr": psnr + 1, "train_fusion_ssim": 0.85})
-    return {"status": "finished", "summary": summary, "postprocess": ["fusion"] if post else [],
+        summary.update({"train_fusion_psnr": psnr + 1, "train_fusion_ssim": 0.85, "train_fusion_coverage": 0.12,
+                        "train_fusion_random_psnr": 20.5, "train_fusion_random_ssim": 0.71})
+    return {"status": "finished", "summary": summary, "postprocess": ["fusion"] if post else [], "scene": scene,
             "train_s": train_s, "peak_rss_mib": mem, "lpips": {"available": False, "reason": "no weights"}}
+
+
+ORACLE = {"yard": {"available": True, "train": {"psnr": 41.0, "ssim": 0.99}, "heldout": {"psnr": 40.0, "ssim": 0.98}},
+          "street": {"available": True, "train": {"psnr": 43.0, "ssim": 0.97}, "heldout": {"psnr": 42.0, "ssim": 0.96}}}
+
+
+def _rows(table: str) -> dict[str, str]:
+    return {line.split(" | ")[0].strip("| "): line for line in table.splitlines()[2:]}
 
 
 def test_table_one_layout():
     cells = build_cells(["nerf", "ours"], [("yard", "/y"), ("street", "/s")], [])
     results = {"cells": {"yard/nerf": _result(25.0), "street/nerf": _result(27.0, train_s=30),
-                         "yard/ours": _result(28.0, post=True, mem=900), "street/ours": _result(30.0, post=True)}}
+                         "yard/ours": _result(28.0, post=True, mem=900, scene="yard"),
+                         "street/ours": _result(30.0, post=True, scene="street")}, "oracle": ORACLE}
     table = markdown_table(cells, results, "train").splitlines()
     assert table[0].startswith("| Method | yard PSNR ↑ | yard SSIM ↑ | yard LPIPS ↓ | street PSNR ↑")
-    assert "Average PSNR ↑" in table[0] and table[0].endswith("Train time (s) | Peak memory (MiB) |")
-    rows = {line.split(" | ")[0].strip("| "): line for line in table[2:]}
-    assert list(rows) == ["rainy input", "nerf", "ours", "ours + fusion"]
-    assert rows["nerf"].startswith("| nerf | 25.00 | 0.800 | n/a | 27.00 | 0.800 | n/a | 26.00 | 0.800 | n/a | 20 | 500 |")
+    assert "Average PSNR ↑" in table[0]
+    assert table[0].endswith("Budget (steps × px/step) | Train time (s) | Peak memory (MiB) |")
+    rows = _rows("\n".join(table))
+    assert list(rows) == ["oracle 3D", "rainy input", "nerf", "ours", "ours + fusion", "↳ fused − input",
+                          "↳ control: random mask, same coverage (12.0 %)"]
+    assert rows["oracle 3D"].startswith("| oracle 3D | 41.00 | 0.990 | n/a | 43.00 | 0.970 | n/a | 42.00 | 0.980 |")
+    assert rows["nerf"].startswith("| nerf | 25.00 | 0.800 | n/a | 27.00 | 0.800 | n/a | 26.00 | 0.800 | n/a | – | 20 | 500 |")
     assert "| 29.00 |" in rows["ours"] and "| 900 |" in rows["ours"]  # average, largest peak
     assert "| 30.00 |" in rows["ours + fusion"]  # (29 + 31) / 2
+    # fused minus input: (29 - 20) and (31 - 20), average +10; SSIM 0.85 - 0.7
+    assert rows["↳ fused − input"].startswith("| ↳ fused − input | +9.00 | +0.150 | n/a | +11.00 | +0.150 | n/a | +10.00 |")
+    assert rows["↳ control: random mask, same coverage (12.0 %)"].split(" | ")[1:3] == ["20.50", "0.710"]
     held = markdown_table(cells, results, "heldout")
-    assert "rainy input" not in held and "| 23.00 |" in held.splitlines()[2]  # nerf: (23 + 25) / 2
+    assert "rainy input" not in held and "fused" not in held and "control" not in held
+    assert _rows(held)["nerf"].startswith("| nerf | 23.00 |") and "| 24.00 |" in _rows(held)["nerf"]
+    assert _rows(held)["oracle 3D"].startswith("| oracle 3D | 40.00 | 0.980 | n/a | 42.00 |")
+
+
+def test_oracle_row_is_na_with_its_reason_on_scene_folders():
+    cells = build_cells(["nerf"], [("mine", "/m"), ("yard", "/y")], [])
+    results = {"cells": {"mine/nerf": _result(25.0), "yard/nerf": _result(26.0)},
+               "oracle": {"mine": {"available": False, "reason": "not a simulated scene folder (no scene.json)"},
+                          "yard": ORACLE["yard"]}}
+    row = _rows(markdown_table(cells, results, "train"))["oracle 3D"]
+    assert row.startswith("| oracle 3D | n/a | n/a | n/a | 41.00 | 0.990 | n/a | n/a |")  # no average
+    report = markdown_report(cells, results)
+    assert "n/a on mine (not a simulated scene folder (no scene.json))" in report
 
 
 def test_unfinished_cells_leave_gaps_not_wrong_averages():
@@ -43,6 +72,7 @@ def test_unfinished_cells_leave_gaps_not_wrong_averages():
     assert "| 25.00 |" in row and row.count("n/a") >= 3 + 3  # street and the average are missing
     report = markdown_report(cells, results)
     assert "Failed cells: street/nerf" in report and "LPIPS: n/a (no weights)" in report
+    assert "| oracle 3D | n/a |" in report and "n/a on yard, street (not computed)" in report
 
 
 def test_ablation_cells_and_table():
@@ -65,20 +95,35 @@ def test_fingerprint_changes_with_the_budget():
 
 @pytest.mark.slow
 def test_cells_run_in_parallel_then_resume_as_done(tmp_path, tiny_scene_dir):
+    """Two cells at once; unequal budgets run only with allow_unequal=true, and the tables then
+    hold every row: oracle, input, methods, fused, fused − input and the control."""
     out = tmp_path / "results"
-    args = ["rs-bench", "methods=nerf,robust-nerf", f"scenes={tiny_scene_dir}", "iters=4", f"out={out}",
+    args = ["rs-bench", "methods=nerf,rainyscape-nerf", f"scenes={tiny_scene_dir}", "iters=4", f"out={out}",
             "name=tiny", "device=cpu", "jobs=2", "threads=1", "trainer.eval_every=0"]
+    refused = subprocess.run(args, capture_output=True, text=True)
+    assert refused.returncode == 2 and "allow_unequal=true" in refused.stderr and not out.exists()
+    args.append("allow_unequal=true")
     first = subprocess.run(args, capture_output=True, text=True)
     assert first.returncode == 0, first.stdout + first.stderr
+    assert "warning: unequal budgets (allow_unequal=true): field 'grid'" in first.stdout
     results = json.loads((out / "tiny.json").read_text())
-    assert sorted(c["method"] for c in results["cells"].values()) == ["nerf", "robust-nerf"]
+    assert sorted(c["method"] for c in results["cells"].values()) == ["nerf", "rainyscape-nerf"]
     cell = next(c for c in results["cells"].values() if c["method"] == "nerf")
     assert cell["status"] == "finished" and cell["iters"] == 4 and cell["how"] == "trained"
     assert cell["summary"]["train_psnr"] > 5 and cell["peak_rss_mib"] > 50 and cell["train_s"] > 0
+    assert cell["cpu_s"] > 0 and cell["budget"]["steps"] == 4 and cell["budget"]["pixels_per_step"] == 1024
     assert cell["views"]["width"] == 48  # it trained on the scene it was given
     assert results["machine"]["cores"] >= 1 and results["command"].startswith("rs-bench methods=nerf")
+    assert results["oracle"][tiny_scene_dir.name]["folder"] == str(tiny_scene_dir.resolve())
+    ours = next(c for c in results["cells"].values() if c["method"] == "rainyscape-nerf")
+    assert "train_rain-mask-fusion_coverage" in ours["summary"]
     table = (out / "tiny.md").read_text()
-    assert "| rainy input |" in table and "| nerf |" in table and "| robust-nerf |" in table
+    train = table.split("## De-raining at the training views")[1].split("## Novel views")[0]
+    labels = [line.split(" | ")[0].strip("| ") for line in train.splitlines() if line.startswith("| ")][1:]
+    assert labels[:6] == ["oracle 3D", "rainy input", "nerf", "rainyscape-nerf", "rainyscape-nerf + rain-mask-fusion",
+                          "↳ fused − input"]
+    assert labels[6].startswith("↳ control: random mask, same coverage")
+    assert "(≠ nerf: 4 × 1024)" in train and "**Unequal budgets within a field**" in train
     second = subprocess.run(args, capture_output=True, text=True)
     assert second.returncode == 0 and second.stdout.count("done earlier, skipped") == 2
     assert json.loads((out / "tiny.json").read_text())["cells"] == results["cells"]

@@ -30,7 +30,9 @@ def peak_memory_mib() -> dict:
 
     import torch
 
-    out = {"peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    # CPU time (user + system) of the cell: on a shared machine, what its wall time would be alone
+    out = {"peak_rss_mib": usage.ru_maxrss / 1024.0, "cpu_s": usage.ru_utime + usage.ru_stime}
     if torch.cuda.is_available():
         out["peak_cuda_mib"] = torch.cuda.max_memory_allocated() / 2**20
     return out

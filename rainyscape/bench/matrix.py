@@ -41,21 +41,33 @@ class Cell:
 
 
 def build_cells(methods: list[str], scenes: list[tuple[str, str]], overrides: list[str],
-                ablation: tuple[str, str] | None = None, ablation_method: str = "rainyscape-nerf") -> list[Cell]:
-    cells = [Cell(f"{label}/{m}", label, data, m, list(overrides), m) for label, data in scenes for m in methods]
+                ablation: tuple[str, str] | None = None, ablation_method: str = "rainyscape-nerf",
+                method_overrides: dict[str, list[str]] | None = None) -> list[Cell]:
+    """The cells of ``methods`` x ``scenes`` ((label, folder) pairs) and, with ``ablation``,
+    the loss ablation. Each cell's overrides: ``method_overrides[method]`` (e.g. a scene set's
+    step count for that method's field), then ``overrides`` (the command's: they win)."""
+    per = method_overrides or {}
+    cells = [Cell(f"{label}/{m}", label, data, m, per.get(m, []) + list(overrides), m)
+             for label, data in scenes for m in methods]
     if ablation is not None:
         label, data = ablation
         cells += [Cell(f"ablation/{label}/{variant}", label, data, ablation_method,
-                       list(overrides) + extra, variant) for variant, extra in ABLATIONS.items()]
+                       per.get(ablation_method, []) + list(overrides) + extra, variant)
+                  for variant, extra in ABLATIONS.items()]
     return cells
+
+
+def cell_config(cell: Cell):
+    """The typed config a cell trains (ConfigError naming the cell when it does not build)."""
+    from rainyscape.config import method_config
+
+    try:
+        return method_config(cell.method, [f"data={cell.data}", *cell.overrides])
+    except ConfigError as exc:
+        raise ConfigError(f"{cell.key.strip('/')}: {exc}") from None
 
 
 def validate_cells(cells: list[Cell]) -> None:
     """Every cell's config must build before anything trains (typos fail at once)."""
-    from rainyscape.config import method_config
-
     for cell in cells:
-        try:
-            method_config(cell.method, [f"data={cell.data}", *cell.overrides])
-        except ConfigError as exc:
-            raise ConfigError(f"{cell.key.strip('/')}: {exc}") from None
+        cell_config(cell)

@@ -11,16 +11,29 @@ ALL_METHODS = "nerf,robust-nerf,rainyscape-nerf,3dgs,robust-3dgs,rainyscape-3dgs
 @dataclass
 class BenchOptions:
     methods: str = field(default=ALL_METHODS, metadata={"help": "comma-separated methods"})
-    scenes: str = field(default="demo", metadata={"help": "comma-separated simulator presets or scene folders"})
-    iters: int = field(default=0, metadata={"help": "trainer.max_iters of every cell (0: each method's own)"})
+    scenes: str = field(default="demo", metadata={"help": "a scene set (cpu: 128 px for a CPU, paper: 512 px "
+                                                          "for a GPU), or comma-separated simulator presets "
+                                                          "or scene folders"})
+    iters: int = field(default=0, metadata={"help": "trainer.max_iters of every cell (0: the scene set's "
+                                                    "budget per field, else each method's own)"})
     out: str = field(default="benchmarks/results", metadata={"help": "results folder"})
     name: str = field(default="", metadata={"help": "results file name (default: today's date)"})
     device: str = field(default="auto", metadata={"help": "auto | cpu | cuda"})
+    profile: str = field(default="auto", metadata={"help": "every method's recipe: cpu | gpu | auto (gpu when "
+                                                           "the cells train on CUDA)"})
     ablation: str = field(default="", metadata={"help": "a scene for the loss ablation table (default: none)"})
     ablation_method: str = field(default="rainyscape-nerf", metadata={"help": "the method the ablation varies"})
-    scene_width: int = field(default=0, metadata={"help": "simulated scenes: image width (0: the preset's)"})
-    scene_rows: int = field(default=0, metadata={"help": "simulated scenes: camera rows (0: the preset's)"})
-    scene_cols: int = field(default=0, metadata={"help": "simulated scenes: camera columns (0: the preset's)"})
+    scene_width: int = field(default=0, metadata={"help": "simulated scenes: image width (0: the set's or "
+                                                          "preset's)"})
+    scene_height: int = field(default=0, metadata={"help": "simulated scenes: image height (0: the set's, or "
+                                                           "the preset's aspect ratio)"})
+    scene_rows: int = field(default=0, metadata={"help": "simulated scenes: camera rows (0: the set's or "
+                                                         "preset's)"})
+    scene_cols: int = field(default=0, metadata={"help": "simulated scenes: camera columns (0: the set's or "
+                                                         "preset's)"})
+    allow_unequal: bool = field(default=False, metadata={"help": "run methods of one field with different "
+                                                                 "budgets (steps, pixels per step); the tables "
+                                                                 "print the difference"})
     jobs: int = field(default=1, metadata={"help": "cells trained at the same time"})
     threads: int = field(default=0, metadata={"help": "torch threads per cell (0: torch's default, "
                                                       "or cores / jobs when jobs > 1)"})

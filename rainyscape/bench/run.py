@@ -1,48 +1,86 @@
-"""A whole benchmark: validate every cell, resolve the scenes, run the cells not done yet
-(``jobs`` at a time, each in its own process) and rewrite the results file and the tables
-after each one."""
+"""A whole benchmark: validate every cell and check its budget, resolve the scenes and their
+oracle, run the cells not done yet (``jobs`` at a time, each in its own process) and rewrite
+the results file and the tables after each one."""
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 from rainyscape.bench.cell import run_cell_subprocess
-from rainyscape.bench.matrix import Cell, build_cells, validate_cells
+from rainyscape.bench.matrix import Cell, cell_config
 from rainyscape.bench.options import BenchOptions
+from rainyscape.bench.oracle import cached_oracle, na_entry, scene_oracle, unavailable
+from rainyscape.bench.plan import plan_bench
 from rainyscape.bench.results import load_results, machine_description, save_results
 from rainyscape.bench.scenes import resolve_scene
 from rainyscape.bench.tables import markdown_report
 from rainyscape.errors import ConfigError
 
 
+def _oracle_job(folder: str, cell: Cell) -> dict:
+    return scene_oracle(folder, cell_config(cell))
+
+
+def update_oracles(cells: list[Cell], results: dict, jobs: int, save) -> None:
+    """The oracle 3D entry of every scene of ``cells`` in ``results["oracle"]``: kept when it
+    was computed for the folder as it is, else computed (``jobs`` scenes at a time, each in
+    its own process) and saved as each one finishes."""
+    oracle = results.setdefault("oracle", {})
+    todo = {}
+    for label, folder in dict.fromkeys((c.scene, c.data) for c in cells):
+        if cached_oracle(oracle.get(label), folder):
+            continue
+        reason = unavailable(folder)
+        if reason is not None:
+            oracle[label] = na_entry(folder, reason)
+        else:
+            todo[label] = (folder, next(c for c in cells if c.scene == label))
+    save()
+    if todo:
+        print(f"oracle 3D: re-rendering the clean views of {', '.join(todo)} ...", flush=True)
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=max(1, min(jobs, len(todo))), mp_context=ctx) as pool:
+            running = {pool.submit(_oracle_job, folder, cell): label for label, (folder, cell) in todo.items()}
+            for future in as_completed(running):
+                oracle[running[future]] = future.result()
+                save()
+    for label in dict.fromkeys(c.scene for c in cells):
+        entry = oracle[label]
+        if entry.get("available"):
+            print(f"oracle 3D on {label}: training views {entry['train']['psnr']:.2f} dB"
+                  + (f", held-out {entry['heldout']['psnr']:.2f} dB" if "heldout" in entry else ""), flush=True)
+        else:
+            print(f"oracle 3D on {label}: n/a ({entry.get('reason')})", flush=True)
+
+
 def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[Path, Path, int]:
-    """Run (or resume) the matrix; returns (results json, markdown, number of failed cells)."""
-    out = Path(opts.out)
-    name = opts.name or time.strftime("%Y-%m-%d")
-    methods = [m.strip() for m in opts.methods.split(",") if m.strip()]
-    if not methods:
-        raise ConfigError("rs-bench: methods= lists no method")
-    if opts.iters < 0:
-        raise ConfigError(f"rs-bench: iters must be >= 0, got {opts.iters}")
+    """Run (or resume) the matrix; returns (results json, markdown, number of failed cells).
+
+    Before anything is simulated or trained (:func:`plan_bench`): every cell's config is
+    built, and its budget computed and checked (methods of one field family on one scene must
+    train the same steps on the same mean pixels per step, unless ``allow_unequal``)."""
     if opts.jobs < 1 or opts.threads < 0:
         raise ConfigError(f"rs-bench: jobs must be >= 1 and threads >= 0, got {opts.jobs} and {opts.threads}")
+    plan = plan_bench(opts, overrides)
+    out = Path(opts.out)
+    name = opts.name or time.strftime("%Y-%m-%d")
     threads = opts.threads or (max(1, (os.cpu_count() or 1) // opts.jobs) if opts.jobs > 1 else 0)
-    budget = [f"trainer.max_iters={opts.iters}"] if opts.iters else []
-    # Every method and override must be valid before any scene is simulated or cell trained.
-    validate_cells(build_cells(methods, [("", "")], budget + overrides,
-                               ("", "") if opts.ablation else None, opts.ablation_method))
+    for m in plan.mismatches:
+        print(f"warning: unequal budgets (allow_unequal=true): {m.describe()}", flush=True)
     cache = out / "scenes"
-    size = (opts.scene_width, opts.scene_rows, opts.scene_cols)
-    scene_specs = [s.strip() for s in opts.scenes.split(",") if s.strip()]
-    scenes = [resolve_scene(s, cache, *size) for s in scene_specs]
-    ablation = resolve_scene(opts.ablation, cache, *size) if opts.ablation else None
-    cells = build_cells(methods, scenes, budget + overrides, ablation, opts.ablation_method)
+    cells = plan.cells({label: resolve_scene(p, cache)[1] for label, p in plan.plans.items()})
+    budgets = plan.budgets
     json_path, md_path = out / f"{name}.json", out / f"{name}.md"
     results = load_results(json_path)
-    results.update({"name": name, "command": command, "machine": machine_description()})
+    results.update({"name": name, "command": command, "machine": machine_description(),
+                    "scene_set": plan.scene_set, "allow_unequal": opts.allow_unequal,
+                    "budgets": {k: b.to_dict() for k, b in budgets.items()},
+                    "budget_mismatches": [m.describe() for m in plan.mismatches]})
+    update_oracles(cells, results, opts.jobs, lambda: save_results(json_path, results))
     todo = []
     for n, cell in enumerate(cells, 1):
         prev = results["cells"].get(cell.key, {})
@@ -65,7 +103,8 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
             n, cell = running[future]
             result = future.result()
             result.update({"fingerprint": cell.fingerprint(), "method": cell.method, "scene": cell.scene,
-                           "label": cell.label, "overrides": cell.overrides})
+                           "label": cell.label, "overrides": cell.overrides,
+                           "budget": budgets[cell.key].to_dict()})
             results["cells"][cell.key] = result
             results["updated"] = time.strftime("%Y-%m-%d %H:%M:%S")
             save_results(json_path, results)

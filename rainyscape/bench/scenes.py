@@ -1,40 +1,83 @@
 """Scenes of a benchmark: a folder, the embedded demo, or a simulator preset simulated once
-into a cache folder (one per preset, size and simulator version)."""
+into a cache folder (one per preset, size, camera array and simulator version).
+
+A scene is first *planned* (:func:`plan_scene`: its label and, for presets, the exact size it
+will be simulated at), so budgets can be checked before anything is simulated or trained,
+then *resolved* (:func:`resolve_scene`) to a folder."""
 
 from __future__ import annotations
 
+import json
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 from rainyscape.errors import ConfigError
 
 
-def resolve_scene(spec: str, cache: Path, width: int = 0, rows: int = 0, cols: int = 0) -> tuple[str, str]:
-    """(label, folder) of a scene given as ``demo``, a simulator preset or a folder path.
+@dataclass(frozen=True)
+class ScenePlan:
+    label: str  # the scene's name in the tables
+    folder: str = ""  # an existing scene folder
+    preset: str = ""  # or a simulator preset, simulated at the size below
+    width: int = 0
+    height: int = 0
+    rows: int = 0
+    cols: int = 0
+    embedded: bool = False  # the embedded demo scene (the demo preset at its own size)
 
-    ``demo`` without size options is the embedded demo scene; presets are simulated once
-    into ``cache`` (a folder per preset, size and simulator version)."""
+
+def plan_scene(spec: str, width: int = 0, height: int = 0, rows: int = 0, cols: int = 0) -> ScenePlan:
+    """The plan of a scene given as ``demo``, a simulator preset or a folder path. Sizes left
+    at 0 are the preset's; a width without a height keeps the preset's aspect ratio."""
     path = Path(spec).expanduser()
     if path.is_dir():
-        return path.name, str(path.resolve())
+        return ScenePlan(path.name, folder=str(path.resolve()))
     from rainyscape.synth.presets import PRESETS
 
     if spec not in PRESETS:
-        raise ConfigError(f"scene '{spec}' is neither a folder nor a simulator preset "
+        raise ConfigError(f"scene '{spec}' is neither a scene set, a folder nor a simulator preset "
                           f"({', '.join(PRESETS)})")
-    if spec == "demo" and not (width or rows or cols):
+    p = PRESETS[spec]
+    w = width or p.width
+    h = height or (p.height if w == p.width else max(1, round(w * p.height / p.width)))
+    embedded = spec == "demo" and not (width or height or rows or cols)
+    return ScenePlan(spec, preset=spec, width=w, height=h, rows=rows or p.rows, cols=cols or p.cols,
+                     embedded=embedded)
+
+
+def planned_image_size(plan: ScenePlan) -> tuple[int, int] | None:
+    """(width, height) of the scene's images before any downscale, when known without
+    simulating or parsing it: a preset's planned size, or a folder's ``scene.json``."""
+    if plan.preset:
+        return plan.width, plan.height
+    meta = Path(plan.folder) / "scene.json"
+    if meta.is_file():
+        try:
+            info = json.loads(meta.read_text())
+            return int(info["width"]), int(info["height"])
+        except (ValueError, KeyError, TypeError):
+            return None
+    return None
+
+
+def resolve_scene(plan: ScenePlan, cache: Path) -> tuple[str, str]:
+    """(label, folder) of a planned scene; presets are simulated once into ``cache``."""
+    if plan.folder:
+        return plan.label, plan.folder
+    if plan.embedded:
         from rainyscape.synth.demo import ensure_demo_scene
 
-        return "demo", str(ensure_demo_scene())
+        return plan.label, str(ensure_demo_scene())
     from rainyscape.synth import SIM_VERSION, generate
 
-    size = f"-{width or 'd'}x{rows or 'd'}x{cols or 'd'}" if (width or rows or cols) else ""
-    folder = cache / f"{spec}{size}-v{SIM_VERSION}"
+    folder = cache / f"{plan.preset}-{plan.width}x{plan.height}-{plan.rows}x{plan.cols}-v{SIM_VERSION}"
     if not (folder / "scene.json").is_file():
-        print(f"simulating scene '{spec}' into {folder} ...", flush=True)
+        print(f"simulating scene '{plan.preset}' ({plan.rows} x {plan.cols} views, {plan.width} x "
+              f"{plan.height} px) into {folder} ...", flush=True)
         tmp = folder.with_name(folder.name + ".partial")
         if tmp.exists():
             shutil.rmtree(tmp)
-        generate(tmp, spec, rows=rows or None, cols=cols or None, width=width or None, force=True)
+        generate(tmp, plan.preset, rows=plan.rows, cols=plan.cols, width=plan.width, height=plan.height, force=True)
         tmp.rename(folder)
-    return spec, str(folder)
+    return plan.label, str(folder)

@@ -1,30 +1,61 @@
 """The Markdown tables of a benchmark: the paper's Table I layout (per scene PSNR / SSIM /
-LPIPS, then the average, with training time and peak memory) for the training and the
-held-out views, and the loss ablation (Table II)."""
+LPIPS, then the average, with each method's budget, training time and peak memory) for the
+training and the held-out views, and the loss ablation (Table II).
+
+Every table starts with the ``oracle 3D`` row (the clean scene re-rendered: the ceiling) and,
+on training views, the ``rainy input`` row (the floor). Each fused row (``method + <pp>``) is
+followed by ``↳ fused − input`` (its gain over the rainy input) and ``↳ control`` (the same
+fusion with a random mask of the same coverage): a fused gain belongs to the rain model only
+as far as the fused row is above its control.
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
+from rainyscape.bench.budget import Budget
 from rainyscape.bench.matrix import Cell
+from rainyscape.bench.oracle import ORACLE_SAMPLES
 from rainyscape.eval.summary import mean_of
 
 METRICS = ("psnr", "ssim", "lpips")
+ORACLE = "oracle 3D"
+INPUT = "rainy input"
+GAIN = "↳ fused − input"
+CONTROL = "↳ control: random mask, same coverage"
 
 
-def _fmt(value: float | None, metric: str) -> str:
+@dataclass
+class Row:
+    label: str
+    per_scene: dict[str, dict[str, float | None]]  # scene -> metric -> value
+    runs: list[dict] = field(default_factory=list)  # the cells' results (time, memory)
+    kind: str = "method"  # oracle | input | method | fused | gain | control
+    method: str = ""  # the row label of the method it belongs to (budget column)
+
+
+def _fmt(value: float | None, metric: str, signed: bool = False) -> str:
     if value is None:
         return "n/a"
-    return f"{value:.2f}" if metric == "psnr" else f"{value:.3f}"
+    sign = "+" if signed else ""
+    return f"{value:{sign}.2f}" if metric == "psnr" else f"{value:{sign}.3f}"
 
 
-def table_rows(cells: list[Cell], results: dict, prefix: str) -> list[tuple[str, dict, list[dict]]]:
-    """(row label, {scene: {metric: value}}, cell results) for one evaluation split.
-
-    ``prefix`` "train" gives the paper's numbers: a rainy-input row, each method, and each
-    method's post-processed variant; "heldout" gives novel views."""
-    scenes = list(dict.fromkeys(c.scene for c in cells))
-    done = {c.key: results["cells"][c.key] for c in cells
+def _done(cells: list[Cell], results: dict) -> dict[str, dict]:
+    return {c.key: results["cells"][c.key] for c in cells
             if results["cells"].get(c.key, {}).get("status") == "finished"}
-    rows: list[tuple[str, dict, list[dict]]] = []
+
+
+def table_rows(cells: list[Cell], results: dict, prefix: str) -> list[Row]:
+    """The rows of one evaluation split: ``prefix`` "train" gives the paper's numbers (oracle,
+    rainy input, each method, each fused variant with its gain over the input and its random-
+    mask control); "heldout" gives novel views (oracle and methods)."""
+    scenes = list(dict.fromkeys(c.scene for c in cells))
+    done = _done(cells, results)
+    split = "train" if prefix == "train" else "heldout"
+    oracle = results.get("oracle", {})
+    rows = [Row(ORACLE, {s: {m: oracle[s][split].get(m) for m in METRICS} for s in scenes
+                         if oracle.get(s, {}).get("available") and split in oracle[s]}, kind="oracle")]
     if prefix == "train":
         floor = {}
         for s in scenes:
@@ -32,41 +63,145 @@ def table_rows(cells: list[Cell], results: dict, prefix: str) -> list[tuple[str,
                      and "rainy_input_psnr" in r["summary"]]
             if found:
                 floor[s] = {m: found[0]["summary"].get(f"rainy_input_{m}") for m in METRICS}
-        if floor:
-            rows.append(("rainy input", floor, []))
+        rows.append(Row(INPUT, floor, kind="input"))
     for label in dict.fromkeys(c.label for c in cells):
         mine = [c for c in cells if c.label == label and c.key in done]
         if not mine:
             continue
-        variants = [("", f"{prefix}_")]
-        if prefix == "train":
-            posts = dict.fromkeys(p for c in mine for p in done[c.key].get("postprocess", []))
-            variants += [(f" + {p}", f"train_{p}_") for p in posts]
-        for suffix, key in variants:
-            per_scene = {c.scene: {m: done[c.key]["summary"].get(key + m) for m in METRICS} for c in mine}
-            rows.append((label + suffix, per_scene, [done[c.key] for c in mine]))
+        runs = [done[c.key] for c in mine]
+        rows.append(Row(label, {c.scene: {m: done[c.key]["summary"].get(f"{prefix}_{m}") for m in METRICS}
+                                for c in mine}, runs, "method", label))
+        if prefix != "train":
+            continue
+        for p in dict.fromkeys(p for r in runs for p in r.get("postprocess", [])):
+            def values(key: str, minus: str = "") -> dict:
+                out = {}
+                for c in mine:
+                    s = done[c.key]["summary"]
+                    out[c.scene] = {}
+                    for m in METRICS:
+                        v, base = s.get(key + m), (s.get(minus + m) if minus else 0.0)
+                        out[c.scene][m] = v - base if v is not None and base is not None else None
+                return out
+
+            rows.append(Row(f"{label} + {p}", values(f"train_{p}_"), runs, "fused", label))
+            rows.append(Row(GAIN, values(f"train_{p}_", "rainy_input_"), [], "gain", label))
+            coverage = mean_of([r["summary"].get(f"train_{p}_coverage") for r in runs])
+            control = CONTROL + (f" ({100 * coverage:.1f} %)" if coverage is not None else "")
+            rows.append(Row(control, values(f"train_{p}_random_"), [], "control", label))
     return rows
+
+
+def _budget(key: str, results: dict) -> Budget | None:
+    d = results["cells"].get(key, {}).get("budget") or results.get("budgets", {}).get(key)
+    return Budget.from_dict(d) if d else None
+
+
+def budget_column(cells: list[Cell], results: dict) -> dict[str, str]:
+    """Row label -> the budget column's text: ``steps × mean pixels per step`` (several values
+    when scenes differ), and where a method's budget differs from the first method of its
+    field family on some scene (allowed only with allow_unequal=true), that difference."""
+    labels = list(dict.fromkeys(c.label for c in cells))
+    by = {(c.label, c.scene): _budget(c.key, results) for c in cells}
+    text = {}
+    for label in labels:
+        mine = [(s, b) for (lab, s), b in by.items() if lab == label and b is not None]
+        if not mine:
+            continue
+        shorts = list(dict.fromkeys(b.short() for _, b in mine))
+        out = " / ".join(shorts)
+        for s, b in mine:
+            ref = next(((lab, r) for lab in labels if (r := by.get((lab, s))) is not None
+                        and r.family == b.family), None)
+            if ref is not None and ref[0] != label and not b.same_as(ref[1]):
+                out += f" (≠ {ref[0]}: {ref[1].short()})"
+                break
+        text[label] = out
+    return text
 
 
 def markdown_table(cells: list[Cell], results: dict, prefix: str) -> str:
     scenes = list(dict.fromkeys(c.scene for c in cells))
     cols = scenes + (["Average"] if len(scenes) > 1 else [])
     head = ["Method"] + [f"{s} {m.upper()} {'↓' if m == 'lpips' else '↑'}" for s in cols for m in METRICS]
-    head += ["Train time (s)", "Peak memory (MiB)"]
+    head += ["Budget (steps × px/step)", "Train time (s)", "Peak memory (MiB)"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for label, per_scene, runs in table_rows(cells, results, prefix):
+    budgets = budget_column(cells, results)
+    for row in table_rows(cells, results, prefix):
+        signed = row.kind == "gain"
         values = []
         for s in scenes:
-            values += [_fmt(per_scene.get(s, {}).get(m), m) for m in METRICS]
+            values += [_fmt(row.per_scene.get(s, {}).get(m), m, signed) for m in METRICS]
         if len(scenes) > 1:
-            complete = all(s in per_scene for s in scenes)
-            values += [_fmt(mean_of([per_scene[s].get(m) for s in scenes]) if complete else None, m)
+            complete = all(s in row.per_scene for s in scenes)
+            values += [_fmt(mean_of([row.per_scene[s].get(m) for s in scenes]) if complete else None, m, signed)
                        for m in METRICS]
-        t = mean_of([r.get("train_s") for r in runs])
-        mem = max([r.get("peak_cuda_mib") or r.get("peak_rss_mib") or 0 for r in runs], default=0)
-        values += [f"{t:.0f}" if t is not None else "–", f"{mem:.0f}" if runs else "–"]
-        lines.append("| " + " | ".join([label] + values) + " |")
+        if row.kind in ("method", "fused"):
+            t = mean_of([r.get("train_s") for r in row.runs])
+            mem = max([r.get("peak_cuda_mib") or r.get("peak_rss_mib") or 0 for r in row.runs], default=0)
+            values += [budgets.get(row.method, "–"), f"{t:.0f}" if t is not None else "–",
+                       f"{mem:.0f}" if row.runs else "–"]
+        else:
+            values += ["–", "–", "–"]
+        lines.append("| " + " | ".join([row.label] + values) + " |")
     return "\n".join(lines)
+
+
+def oracle_notes(cells: list[Cell], results: dict) -> list[str]:
+    scenes = list(dict.fromkeys(c.scene for c in cells))
+    oracle = results.get("oracle", {})
+    why: dict[str, list[str]] = {}  # reason -> scenes, so one reason is said once
+    for s in scenes:
+        if not oracle.get(s, {}).get("available"):
+            why.setdefault(oracle.get(s, {}).get("reason", "not computed"), []).append(s)
+    missing = [f"{', '.join(names)} ({reason})" for reason, names in why.items()]
+    text = (f"`{ORACLE}`: the clean scene itself re-rendered ({ORACLE_SAMPLES} x {ORACLE_SAMPLES} base samples "
+            "per pixel, an independent sample set) against the stored clean images: what a perfect 3D "
+            "reconstruction scores, the ceiling of each column.")
+    if missing:
+        text += " n/a on " + "; on ".join(missing) + "."
+    return [text]
+
+
+def fusion_notes(cells: list[Cell], results: dict) -> list[str]:
+    rows = [r for r in table_rows(cells, results, "train") if r.kind == "fused"]
+    if not rows:
+        return []
+    parts = []
+    for row in rows:
+        p = row.label.split(" + ", 1)[1]
+        cov = ", ".join(f"{r.get('scene', '?')} {100 * c:.1f} %" for r in row.runs
+                        if (c := r["summary"].get(f"train_{p}_coverage")) is not None)
+        if cov:
+            parts.append(f"{row.label}: {cov}")
+    text = (f"`{GAIN}`: the fused row minus the rainy input (PSNR in dB, SSIM). `{CONTROL}`: the same fusion "
+            "with a mask of random pixels covering the same fraction of each view as the predicted rain "
+            "mask (seeded); the fused gain is the rain model's only as far as the fused row is above its "
+            "control, the rest comes from copying the input.")
+    if parts:
+        text += " Mask coverage per scene: " + "; ".join(parts) + "."
+    return [text]
+
+
+def budget_notes(cells: list[Cell], results: dict) -> list[str]:
+    fams: dict[str, list[str]] = {}
+    for c in cells:
+        b = _budget(c.key, results)
+        if b is not None and c.label not in fams.setdefault(b.family, []):
+            fams[b.family].append(c.label)
+    if not fams:
+        return []
+    text = ("Budget: training steps × mean pixels (rays) per step, each phase weighted by its steps "
+            "(a whole view counts width × height). Methods that train the same field ("
+            + "; ".join(f"{f}: {', '.join(labels)}" for f, labels in fams.items())
+            + ") get the same budget (rs-bench refuses otherwise)")
+    text += "; different fields may differ (a Gaussian step renders whole views, a NeRF step a batch of rays)." \
+        if len(fams) > 1 else "."
+    notes = [text]
+    if results.get("budget_mismatches"):
+        notes.append("**Unequal budgets within a field** (allow_unequal=true), so these rows do not compare "
+                     "like for like: " + "; ".join(results["budget_mismatches"]) + ".")
+    return notes
 
 
 def markdown_report(cells: list[Cell], results: dict) -> str:
@@ -80,8 +215,10 @@ def markdown_report(cells: list[Cell], results: dict) -> str:
              f"Updated: {results.get('updated', '')}", ""]
     if main:
         parts += ["## De-raining at the training views (the paper's Table I protocol)", "",
-                  markdown_table(main, results, "train"), "",
-                  "## Novel views (held-out views)", "", markdown_table(main, results, "heldout"), ""]
+                  markdown_table(main, results, "train"), ""]
+        for note in oracle_notes(main, results) + fusion_notes(main, results) + budget_notes(main, results):
+            parts += [note, ""]
+        parts += ["## Novel views (held-out views)", "", markdown_table(main, results, "heldout"), ""]
     if ablation:
         parts += [f"## Loss ablation ({ablation[0].method} on {ablation[0].scene}; the paper's Table II)", "",
                   markdown_table(ablation, results, "train"), ""]
@@ -94,4 +231,4 @@ def markdown_report(cells: list[Cell], results: dict) -> str:
     parts += ["Train time: mean over scenes of the training wall time (evaluation excluded); "
               "peak memory: the largest peak over scenes (resident memory on CPU, "
               "allocated CUDA memory on a GPU).", ""]
-    return "\n".join(parts)
+    return "\n".join([p for i, p in enumerate(parts) if p or (i and parts[i - 1])])

@@ -1,16 +1,22 @@
-"""rs-bench: train a matrix of methods x scenes at one budget and tabulate the results.
+"""rs-bench: train a matrix of methods x scenes at equal budgets and tabulate the results.
 
 Usage:
-  rs-bench [methods=M1,M2,...] [scenes=S1,S2,...] [iters=N] [out=DIR] [name=NAME] [key=value ...]
+  rs-bench [methods=M1,M2,...] [scenes=SET|S1,S2,...] [iters=N] [out=DIR] [name=NAME] [key=value ...]
            [KEY.PATH=value ...]
 
-Scenes are simulator presets (demo, yard, street, bridge, plaza; simulated once into
-OUT/scenes) or scene folders. Dotted keys (trainer.eval_every=0, ...) are passed to every
-cell. Each cell trains in its own process; OUT/NAME.json is updated after every cell and
-rerunning the same command skips finished cells and resumes interrupted ones. jobs=N trains
-N cells at once, each with threads= torch threads (default: cores / N). OUT/NAME.md holds the
-Table-I-style tables (per scene PSNR / SSIM / LPIPS, then the average; training time and peak
-memory) and, with ablation=SCENE, the loss ablation of ablation_method (the paper's Table II).
+Scenes: a scene set (cpu: five presets at 128 px, the six-method table in an hour on 2 cores
+with jobs=2 threads=1; paper: 512 px, 5 x 10 views, the paper's step counts, for a GPU), or
+simulator presets (simulated once into OUT/scenes) and scene folders; demo alone is the
+embedded demo. A set fixes size, views and steps per field; scene_width= ... iters= override.
+Before anything trains, every cell's budget (steps, mean pixels per step) is computed and
+methods training the same field must match (exit 2 naming them, unless allow_unequal=true).
+Dotted keys (trainer.eval_every=0, ...) go to every cell. Each cell trains in its own process;
+OUT/NAME.json is updated after every cell and rerunning the same command skips finished cells
+and resumes interrupted ones. jobs=N trains N cells at once, each with threads= torch threads
+(default: cores / N). OUT/NAME.md holds the Table-I-style tables: the oracle 3D row (the clean
+scene re-rendered), the rainy input, each method, each fused row with its gain over the input
+and its random-mask control, and a budget column (docs/evaluation.md, "How to read the
+tables"); with ablation=SCENE, the loss ablation of ablation_method (the paper's Table II).
 """
 
 from __future__ import annotations

@@ -7,6 +7,10 @@ the predicted rain layer correlates with the true one.
   rainy_input_{psnr,ssim,lpips}   rainy training inputs vs clean: the floor to beat
   train_{psnr,ssim,lpips}         renders at training views vs clean (the paper's numbers)
   train_<pp>_{psnr,ssim,lpips}    the same after post-process <pp> (the config's key)
+  train_<pp>_coverage             fusion post-processes: fraction of pixels its mask takes from the render
+  train_<pp>_random_{psnr,ssim,lpips}  the fusion control: the same fusion with a mask of random
+                                  pixels of the same coverage (seeded per view); a fused gain
+                                  that the control also shows comes from copying the input
   heldout_{psnr,ssim,lpips}       renders at held-out views vs clean (novel views)
   {train,heldout}_psnr_vs_rainy   renders vs the rainy images (how much rain was fitted)
   rain_angle_deg, rain_angle_true_deg, rain_angle_error_deg, rain_correlation
@@ -29,8 +33,10 @@ from rainyscape.eval.report import write_report
 from rainyscape.eval.summary import summarize
 from rainyscape.eval.views import ViewImages, progress, view_images
 from rainyscape.imaging.metrics import psnr, ssim
+from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion, fuse, rain_mask
 
 STRIP_VIEWS = 3  # training views whose comparison strips evaluation saves for the report
+CONTROL_SEED = 7919  # the random-mask control of view i uses seed CONTROL_SEED + i
 
 
 def image_metrics(pred: Tensor, target: Tensor, lpips: LpipsMetric) -> dict[str, float]:
@@ -41,9 +47,51 @@ def image_metrics(pred: Tensor, target: Tensor, lpips: LpipsMetric) -> dict[str,
     return out
 
 
-def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict) -> dict:
-    """One view's row of ``per_view``: its images against the clean and the rainy ones, and
-    its rain statistics."""
+def fusion_mask(post, rendered: Tensor, rain: Tensor, rainy: Tensor) -> Tensor | None:
+    """The (1, H, W) boolean mask under which fusion post-process ``post`` keeps rendered
+    pixels: its own ``post.mask(rendered, rain, rainy)`` when it has one, for rain-mask fusion
+    the mask rebuilt from its public pieces (``rain_mask`` with its threshold and dilation);
+    None for a post-process that is not a mask fusion (it gets no control)."""
+    if callable(getattr(post, "mask", None)):
+        return post.mask(rendered, rain, rainy)
+    if isinstance(post, RainMaskFusion):
+        return rain_mask(rain, post.config.threshold, post.config.dilation)
+    return None
+
+
+def random_mask_like(mask: Tensor, seed: int) -> Tensor:
+    """A boolean mask of ``mask``'s shape with exactly as many pixels set, placed uniformly at
+    random (``torch.randperm`` with ``seed``: the same seed gives the same mask anywhere)."""
+    n, k = mask.numel(), int(mask.sum())
+    flat = torch.zeros(n, dtype=torch.bool)
+    flat[torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:k]] = True
+    return flat.view(mask.shape).to(mask.device)
+
+
+def fusion_controls(pipeline: Pipeline, v: ViewImages) -> dict[str, tuple[float, Tensor]]:
+    """For each mask-fusion post-process of a training view: (coverage of its mask, the same
+    fusion with a random mask of that coverage). A post-process whose output is not
+    ``fuse(rendered, rainy, mask)`` of the mask found for it gets none (no control is better
+    than a wrong one)."""
+    out: dict[str, tuple[float, Tensor]] = {}
+    if v.rain is None:
+        return out
+    for key, post in pipeline.postprocess.items():
+        if key not in v.post:
+            continue
+        mask = fusion_mask(post, v.rendered, v.rain, v.rainy)
+        if mask is None or not torch.allclose(fuse(v.rendered, v.rainy, mask).clamp(0, 1), v.post[key], atol=1e-6):
+            continue
+        control = fuse(v.rendered, v.rainy, random_mask_like(mask, CONTROL_SEED + v.index)).clamp(0, 1)
+        out[key] = (float(mask.float().mean()), control)
+    return out
+
+
+def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict,
+                 controls: dict[str, tuple[float, Tensor]] | None = None) -> dict:
+    """One view's row of ``per_view``: its images against the clean and the rainy ones, the
+    fusion controls (``controls``: post-process key -> (coverage, control image)), and its
+    rain statistics."""
     row: dict = {"view": v.name, "split": v.split,
                  "psnr_vs_rainy": float(psnr(v.rendered, v.rainy))}
     if v.clean is not None:
@@ -52,6 +100,10 @@ def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict) -> dict:
             row.update({f"rainy_input_{k}": x for k, x in image_metrics(v.rainy, v.clean, lpips).items()})
             for key, img in v.post.items():
                 row.update({f"{key}_{k}": x for k, x in image_metrics(img, v.clean, lpips).items()})
+            for key, (_, img) in (controls or {}).items():
+                row.update({f"{key}_random_{k}": x for k, x in image_metrics(img, v.clean, lpips).items()})
+    for key, (coverage, _) in (controls or {}).items():
+        row[f"{key}_coverage"] = coverage
     row.update(view_rain_stats(v, angle_opts))
     return row
 
@@ -65,7 +117,7 @@ def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: i
     rows, kept = [], []
     for i in progress(list(scene.train_indices) + list(scene.eval_indices), "evaluating views"):
         v = view_images(pipeline, i)
-        rows.append(view_metrics(v, lpips, options))
+        rows.append(view_metrics(v, lpips, options, fusion_controls(pipeline, v)))
         if v.split == "train" and len(kept) < keep:
             kept.append(v)
     return rows, kept

@@ -1,0 +1,120 @@
+"""The plan of a benchmark, made before anything is simulated or trained: the methods, the
+scenes (a scene set's, or the listed presets and folders, at their sizes), every cell's
+overrides (a set's step count per field family, then ``iters=``, then the command's dotted
+keys), every cell's budget, and the budget check."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rainyscape.bench.budget import Budget, Mismatch, cell_budget, check_budgets
+from rainyscape.bench.matrix import Cell, build_cells, cell_config, validate_cells
+from rainyscape.bench.options import BenchOptions
+from rainyscape.bench.scenes import ScenePlan, plan_scene, planned_image_size
+from rainyscape.bench.sets import scene_set
+from rainyscape.config.overrides import uses_cuda
+from rainyscape.config.schema import PROFILES
+from rainyscape.errors import ConfigError
+
+
+@dataclass
+class BenchPlan:
+    methods: list[str]
+    scenes: list[ScenePlan]  # the tables' scenes, in order
+    ablation: ScenePlan | None
+    ablation_method: str
+    overrides: list[str]  # every cell's: iters=, then the command's dotted keys
+    per_method: dict[str, list[str]]  # before those: the scene set's step count for the method's field
+    scene_set: str | None = None
+    budgets: dict[str, Budget] = field(default_factory=dict)  # cell key -> budget
+    mismatches: list[Mismatch] = field(default_factory=list)  # allowed with allow_unequal=true
+
+    @property
+    def plans(self) -> dict[str, ScenePlan]:
+        """Every scene by label (the tables' and the ablation's)."""
+        out = {p.label: p for p in self.scenes}
+        if self.ablation is not None:
+            out.setdefault(self.ablation.label, self.ablation)
+        return out
+
+    def cells(self, folders: dict[str, str] | None = None) -> list[Cell]:
+        """The cells, with each scene's folder (``folders``: label -> folder once resolved)."""
+        folders = folders or {label: p.folder for label, p in self.plans.items()}
+        ablation = (self.ablation.label, folders[self.ablation.label]) if self.ablation else None
+        return build_cells(self.methods, [(p.label, folders[p.label]) for p in self.scenes], self.overrides,
+                           ablation, self.ablation_method, self.per_method)
+
+
+def family_iters(methods: list[str], overrides: list[str], iters: dict[str, int]) -> dict[str, list[str]]:
+    """Per method, the ``trainer.max_iters`` override a scene set gives its field family."""
+    out = {}
+    for m in methods:
+        family = cell_config(Cell(m, "", "", m, list(overrides))).field.name
+        if family in iters:
+            out[m] = [f"trainer.max_iters={iters[family]}"]
+    return out
+
+
+def image_size(plan: ScenePlan, cfg) -> tuple[int, int]:
+    """(width, height) of a scene's images as the cells' dataparser delivers them (after its
+    downscale); a folder without ``scene.json`` is parsed to find out."""
+    size = planned_image_size(plan)
+    if size is None:
+        from rainyscape.engine.pipeline import load_scene
+
+        scene = load_scene(cfg, Path(plan.folder))
+        return scene.width, scene.height
+    factor = max(1, int(getattr(cfg.dataparser.options, "downscale", 1) or 1))
+    return size[0] // factor, size[1] // factor
+
+
+def plan_budgets(cells: list[Cell], plans: dict[str, ScenePlan]) -> dict[str, Budget]:
+    """Every cell's training budget from its typed config, before anything is simulated or trained."""
+    sizes: dict[str, tuple[int, int]] = {}
+    budgets = {}
+    for cell in cells:
+        cfg = cell_config(cell)
+        if cell.scene not in sizes:
+            sizes[cell.scene] = image_size(plans[cell.scene], cfg)
+        budgets[cell.key] = cell_budget(cfg, *sizes[cell.scene])
+    return budgets
+
+
+def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
+    """Everything about a benchmark that is known before it runs; raises ConfigError on a bad
+    option, method or override, and on unequal budgets within a field (unless
+    ``opts.allow_unequal``)."""
+    methods = [m.strip() for m in opts.methods.split(",") if m.strip()]
+    if not methods:
+        raise ConfigError("rs-bench: methods= lists no method")
+    if opts.iters < 0:
+        raise ConfigError(f"rs-bench: iters must be >= 0, got {opts.iters}")
+    for key in ("scene_width", "scene_height", "scene_rows", "scene_cols"):
+        if getattr(opts, key) < 0:
+            raise ConfigError(f"rs-bench: {key} must be >= 0, got {getattr(opts, key)}")
+    sset = scene_set(opts.scenes)
+    if opts.profile not in ("auto", *PROFILES):
+        raise ConfigError(f"rs-bench: profile must be auto, {' or '.join(PROFILES)}, got '{opts.profile}'")
+    # The recipe is fixed here, for every cell alike, so that the budgets checked below are the
+    # ones the cells train with (and a cell's fingerprint says which recipe it ran).
+    profile = opts.profile if opts.profile != "auto" else "gpu" if uses_cuda(opts.device) else "cpu"
+    base = [f"profile={profile}"] + ([f"trainer.max_iters={opts.iters}"] if opts.iters else [])
+    # Every method and override must be valid before any scene is simulated or cell trained.
+    validate_cells(build_cells(methods, [("", "")], base + overrides,
+                               ("", "") if opts.ablation else None, opts.ablation_method))
+    every = list(dict.fromkeys(methods + ([opts.ablation_method] if opts.ablation else [])))
+    per_method = family_iters(every, base + overrides, sset.iters) if sset and not opts.iters else {}
+    size = dict(width=opts.scene_width or (sset.width if sset else 0),
+                height=opts.scene_height or (sset.height if sset and not opts.scene_width else 0),
+                rows=opts.scene_rows or (sset.rows if sset else 0), cols=opts.scene_cols or (sset.cols if sset else 0))
+    specs = list(sset.presets) if sset else [s.strip() for s in opts.scenes.split(",") if s.strip()]
+    if not specs:
+        raise ConfigError("rs-bench: scenes= lists no scene")
+    scenes = list({p.label: p for p in (plan_scene(s, **size) for s in specs)}.values())
+    plan = BenchPlan(methods, scenes, plan_scene(opts.ablation, **size) if opts.ablation else None,
+                     opts.ablation_method, base + overrides, per_method, sset.name if sset else None)
+    plan.budgets = plan_budgets(plan.cells(), plan.plans)
+    plan.mismatches = check_budgets([(key, key.split("/")[0], b) for key, b in plan.budgets.items()
+                                     if not key.startswith("ablation/")], opts.allow_unequal)
+    return plan

@@ -1,0 +1,60 @@
+"""Named scene sets for ``rs-bench scenes=NAME``: which simulator presets, at what size and
+camera array, and the default training budget of each field family.
+
+A set fixes the image size, the camera rows x columns and ``trainer.max_iters`` per field
+family; ``scene_width= scene_height= scene_rows= scene_cols= iters=`` and a dotted
+``trainer.max_iters=`` still override it. Its presets cover the rain the simulator makes:
+light, medium, heavy, slanted by wind, and two directions at once.
+
+- ``cpu``: 128 px, sized so that the six-method table (nerf, robust-nerf, rainyscape-nerf,
+  3dgs, robust-3dgs, rainyscape-3dgs) trains in at most an hour on 2 CPU cores with
+  ``jobs=2 threads=1`` (the measurement behind it: docs/evaluation.md, "Sizing the cpu set").
+- ``paper``: the paper's array (5 x 10 views) at 512 px and its step counts (18k NeRF steps,
+  30k for 3DGS): a GPU run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from rainyscape.errors import ConfigError
+from rainyscape.synth.presets import PRESETS
+
+# light, medium, heavy, slanted 30 deg by wind, two directions (docs/simulator.md). The medium
+# one is the simulator's `crossroad` once it has it (its rebuild), the demo street until then.
+CPU_PRESETS = ("yard", "crossroad" if "crossroad" in PRESETS else "demo", "plaza", "street", "bridge")
+
+
+@dataclass(frozen=True)
+class SceneSet:
+    name: str
+    presets: tuple[str, ...]  # simulator presets, in table order
+    width: int
+    height: int
+    rows: int
+    cols: int
+    iters: dict[str, int] = field(default_factory=dict)  # field family -> trainer.max_iters
+    description: str = ""
+
+
+SCENE_SETS: dict[str, SceneSet] = {s.name: s for s in [
+    SceneSet("cpu", CPU_PRESETS, width=128, height=128, rows=3, cols=6,
+             iters={"grid": 1500, "gaussians": 1500},
+             description="five presets (light, medium, heavy, slanted 30 deg, two directions) at 128 px, "
+                         "3 x 6 views: the six-method table in at most an hour on 2 CPU cores"),
+    SceneSet("paper", CPU_PRESETS, width=512, height=512, rows=5, cols=10,
+             iters={"grid": 18000, "gaussians": 30000},
+             description="the same presets at the paper's size (5 x 10 views, 512 px) and step counts "
+                         "(18k for NeRF, 30k for 3DGS): a GPU run"),
+]}
+
+
+def scene_set(spec: str) -> SceneSet | None:
+    """The set named by ``scenes=`` (None when it lists presets or folders instead). A set
+    stands alone: ``scenes=cpu,yard`` is refused."""
+    names = [s.strip() for s in spec.split(",") if s.strip()]
+    found = [n for n in names if n in SCENE_SETS]
+    if found and len(names) > 1:
+        raise ConfigError(f"rs-bench: scenes={spec}: a scene set ({found[0]}) cannot be combined with "
+                          "other scenes; list presets or folders instead")
+    return SCENE_SETS[found[0]] if found else None

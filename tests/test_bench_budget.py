@@ -1,0 +1,93 @@
+"""Equal budgets: every cell's steps and pixels per step from its real typed config, and the
+refusal of a table whose methods of one field differ."""
+
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+
+from rainyscape.bench.budget import Budget, budget_mismatches, cell_budget, check_budgets
+from rainyscape.bench.matrix import build_cells
+from rainyscape.bench.sets import SCENE_SETS
+from rainyscape.bench.tables import budget_column, markdown_report
+from rainyscape.config import method_config
+from rainyscape.errors import ConfigError
+
+
+def _budget(method: str, *overrides: str, size: int = 128) -> Budget:
+    return cell_budget(method_config(method, ["trainer.max_iters=100", *overrides]), size, size)
+
+
+def test_budgets_of_the_real_methods():
+    nerf = _budget("nerf")
+    assert (nerf.family, nerf.steps, nerf.pixels_per_step) == ("grid", 100, 1024)
+    robust = _budget("robust-nerf")  # 16 x 16 patches with nerf's rays per step
+    assert robust.family == "grid" and robust.same_as(nerf)
+    ours = _budget("rainyscape-nerf")  # warm-up: nerf's rays; joint: one 64 x 64 patch
+    assert [(p.name, p.steps, p.pixels) for p in ours.phases] == [("warmup", 50, 1024), ("joint", 50, 4096)]
+    assert ours.pixels_per_step == 2560 and not ours.same_as(nerf)
+    assert ours.describe() == "100 steps × 2560 px/step (warmup 50 × 1024, joint 50 × 4096)"
+    gs = _budget("3dgs")  # whole views: width x height
+    assert (gs.family, gs.pixels_per_step) == ("gaussians", 128 * 128)
+    assert _budget("rainyscape-3dgs").same_as(gs) and _budget("robust-3dgs").same_as(gs)
+    assert _budget("3dgs", size=64).pixels_per_step == 64 * 64
+    # a run stopped early counts the steps it runs, in the phases it runs them
+    stopped = _budget("rainyscape-nerf", "trainer.stop_at=40")
+    assert stopped.steps == 40 and stopped.pixels_per_step == 1024
+    assert Budget.from_dict(ours.to_dict()) == ours
+
+
+def _table(*methods: str) -> list[tuple[str, str, Budget]]:
+    return [(f"yard/{m}", "yard", _budget(m)) for m in methods]
+
+
+def test_unequal_budgets_within_a_field_are_refused():
+    with pytest.raises(ConfigError) as err:
+        check_budgets(_table("nerf", "rainyscape-nerf"))
+    msg = str(err.value)
+    assert "field 'grid' on scene yard: nerf: 100 steps × 1024 px/step; " \
+           "rainyscape-nerf: 100 steps × 2560 px/step (warmup 50 × 1024, joint 50 × 4096)" in msg
+    assert "allow_unequal=true" in msg
+    # different steps are unequal too
+    steps = [("yard/nerf", "yard", _budget("nerf")), ("yard/robust-nerf", "yard", _budget("robust-nerf", "trainer.max_iters=200"))]
+    assert len(budget_mismatches(steps)) == 1
+    # allowed: the mismatch is returned, not raised
+    (m,) = check_budgets(_table("nerf", "rainyscape-nerf"), allow_unequal=True)
+    assert m.family == "grid" and m.scenes == ("yard",)
+    # the same difference on several scenes is one line naming them
+    two = _table("nerf", "rainyscape-nerf") + [(k.replace("yard", "plaza"), "plaza", b) for k, _, b in _table("nerf", "rainyscape-nerf")]
+    (m,) = budget_mismatches(two)
+    assert m.scenes == ("yard", "plaza") and m.describe().startswith("field 'grid' on scenes yard, plaza: nerf: ")
+
+
+def test_equal_budgets_and_different_fields_pass():
+    assert check_budgets(_table("nerf", "robust-nerf", "3dgs", "robust-3dgs", "rainyscape-3dgs")) == []
+    # the same method on scenes of different sizes is not a mismatch (scenes are checked apart)
+    assert check_budgets([("a/3dgs", "a", _budget("3dgs", size=64)), ("b/3dgs", "b", _budget("3dgs"))]) == []
+
+
+def test_budget_column_prints_the_difference():
+    cells = build_cells(["nerf", "rainyscape-nerf", "3dgs"], [("yard", "/y")], [])
+    budgets = {f"yard/{m}": _budget(m).to_dict() for m in ("nerf", "rainyscape-nerf", "3dgs")}
+    results = {"cells": {}, "budgets": budgets}
+    col = budget_column(cells, results)
+    assert col == {"nerf": "100 × 1024", "rainyscape-nerf": "100 × 2560 (≠ nerf: 100 × 1024)", "3dgs": "100 × 16384"}
+    results["cells"] = {k: {"status": "finished", "summary": {"train_psnr": 20.0}, "budget": b, "scene": "yard"}
+                        for k, b in budgets.items()}
+    results["budget_mismatches"] = ["field 'grid' on scene yard: ..."]
+    report = markdown_report(cells, results)
+    assert "| 100 × 2560 (≠ nerf: 100 × 1024) |" in report
+    assert "grid: nerf, rainyscape-nerf; gaussians: 3dgs" in report and "different fields may differ" in report
+    assert "**Unequal budgets within a field** (allow_unequal=true)" in report
+
+
+def test_rs_bench_refuses_unequal_budgets_before_anything_runs(tmp_path):
+    done = subprocess.run(["rs-bench", "scenes=cpu", "methods=nerf,rainyscape-nerf", "iters=5", f"out={tmp_path}"],
+                          capture_output=True, text=True)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    scenes = ", ".join(SCENE_SETS["cpu"].presets)
+    assert f"field 'grid' on scenes {scenes}: nerf: 5 steps × 1024 px/step; " \
+           "rainyscape-nerf: 5 steps × 2867 px/step (warmup 2 × 1024, joint 3 × 4096)" in done.stderr
+    assert "allow_unequal=true" in done.stderr
+    assert not list(tmp_path.iterdir())  # nothing simulated, trained or written

@@ -1,0 +1,88 @@
+"""Scene sets (``rs-bench scenes=cpu|paper``) resolve to their documented sizes, budgets and
+presets; explicit options override them; presets, folders and the demo still work."""
+
+from __future__ import annotations
+
+import pytest
+
+from rainyscape.bench.options import BenchOptions
+from rainyscape.bench.plan import plan_bench
+from rainyscape.bench.sets import SCENE_SETS, scene_set
+from rainyscape.errors import ConfigError
+from rainyscape.synth.presets import PRESETS
+
+SIX = "nerf,robust-nerf,3dgs,robust-3dgs"  # equal budgets today within each field
+
+
+def _plan(**kw):
+    overrides = kw.pop("overrides", [])
+    return plan_bench(BenchOptions(**{"methods": SIX, **kw}), overrides)
+
+
+def _iters(plan) -> dict[str, int]:
+    return {k.split("/")[1]: b.steps for k, b in plan.budgets.items() if k.startswith(plan.scenes[0].label + "/")}
+
+
+def test_documented_sets():
+    cpu, paper = SCENE_SETS["cpu"], SCENE_SETS["paper"]
+    assert (cpu.width, cpu.height) == (128, 128) and len(cpu.presets) == 5
+    assert (paper.width, paper.height, paper.rows, paper.cols) == (512, 512, 5, 10)
+    assert paper.iters == {"grid": 18000, "gaussians": 30000}  # the paper's NeRF and 3DGS step counts
+    for s in (cpu, paper):
+        assert set(s.presets) <= set(PRESETS) and len(set(s.presets)) == len(s.presets)
+        assert set(s.iters) == {"grid", "gaussians"}
+
+
+def test_cpu_set_resolves_to_its_sizes_and_budgets():
+    cpu = SCENE_SETS["cpu"]
+    plan = _plan(scenes="cpu")
+    assert plan.scene_set == "cpu" and [p.label for p in plan.scenes] == list(cpu.presets)
+    assert all((p.width, p.height, p.rows, p.cols) == (128, 128, cpu.rows, cpu.cols) for p in plan.scenes)
+    assert all(not p.embedded and not p.folder for p in plan.scenes)  # simulated at the set's size
+    steps = _iters(plan)
+    assert steps["nerf"] == steps["robust-nerf"] == cpu.iters["grid"]
+    assert steps["3dgs"] == steps["robust-3dgs"] == cpu.iters["gaussians"]
+    b = plan.budgets[f"{cpu.presets[0]}/3dgs"]
+    assert b.pixels_per_step == 128 * 128  # a whole view of the set's size
+
+
+def test_every_cell_trains_the_recipe_its_budget_was_checked_for():
+    assert _plan(scenes="demo", device="cpu").overrides[0] == "profile=cpu"
+    assert _plan(scenes="demo", device="cpu", profile="gpu").overrides[0] == "profile=gpu"
+    with pytest.raises(ConfigError, match="profile must be"):
+        _plan(scenes="demo", profile="tpu")
+
+
+def test_paper_set_and_explicit_overrides():
+    plan = _plan(scenes="paper")
+    assert all((p.width, p.height, p.rows, p.cols) == (512, 512, 5, 10) for p in plan.scenes)
+    assert _iters(plan) == {"nerf": 18000, "robust-nerf": 18000, "3dgs": 30000, "robust-3dgs": 30000}
+    mine = _plan(scenes="cpu", scene_width=64, scene_rows=2, iters=7)
+    assert all((p.width, p.height, p.rows, p.cols) == (64, 64, 2, SCENE_SETS["cpu"].cols) for p in mine.scenes)
+    assert set(_iters(mine).values()) == {7}
+    dotted = _plan(scenes="cpu", overrides=["trainer.max_iters=9"])  # a dotted key wins over the set
+    assert set(_iters(dotted).values()) == {9}
+
+
+def test_presets_folders_and_demo_still_work(tiny_scene_dir):
+    demo = _plan(scenes="demo")
+    assert demo.scene_set is None and demo.scenes[0].embedded
+    assert demo.budgets["demo/3dgs"].pixels_per_step == PRESETS["demo"].width * PRESETS["demo"].height
+    from rainyscape.config import method_config
+
+    assert _iters(demo)["nerf"] == method_config("nerf", []).trainer.max_iters  # the method's own budget
+    yard = _plan(scenes="yard", scene_width=96)
+    assert (yard.scenes[0].width, yard.scenes[0].height) == (96, 96) and not yard.scenes[0].embedded
+    folder = _plan(scenes=str(tiny_scene_dir))
+    assert folder.scenes[0].folder == str(tiny_scene_dir.resolve())
+    assert folder.budgets[f"{tiny_scene_dir.name}/3dgs"].pixels_per_step == 48 * 48  # from its scene.json
+    half = _plan(scenes=str(tiny_scene_dir), overrides=["dataparser.downscale=2"])
+    assert half.budgets[f"{tiny_scene_dir.name}/3dgs"].pixels_per_step == 24 * 24
+
+
+def test_bad_scene_specs():
+    assert scene_set("yard,street") is None
+    with pytest.raises(ConfigError, match="cannot be combined"):
+        scene_set("cpu,yard")
+    with pytest.raises(ConfigError, match="neither a scene set"):
+        _plan(scenes="no-such-scene")
