@@ -107,7 +107,7 @@ class ComponentConfig:
 @dataclass
 class LossConfig:
     name: str  # the registered loss component
-    weight: float = 1.0
+    weight: float = bounded(1.0, 0.0)
     phases: tuple[str, ...] = ()  # the phases it acts in (empty: the loss class's default phases)
     detach: str = ""  # "" | "rendered" | "rain": stop gradients into that input
     options: Any = field(default_factory=dict)

@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from rainyscape.errors import RunBusyError
+from rainyscape.errors import RainyScapeError, RunBusyError
 
 try:
     import fcntl
@@ -60,7 +60,11 @@ class RunLock:
     def acquire(self) -> "RunLock":
         if fcntl is None or self.fd is not None:
             return self
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise RainyScapeError(f"{self.run_dir}: cannot open the run's lock file "
+                                  f"({exc.strerror or exc})") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:

@@ -61,8 +61,8 @@ def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: i
                    views: list[int] | None = None, time_limit: float | None = None
                    ) -> tuple[list[dict], list[ViewImages]]:
     """Per-view metrics of ``views`` (default: every view), and the images of the first
-    ``keep`` training views. With ``time_limit`` (seconds) no view starts after it has
-    passed (the first always runs)."""
+    ``keep`` training views. With ``time_limit`` (seconds) no view starts that would, at the
+    mean time a view has taken, end after it, except the first of each split."""
     lpips = lpips or load_lpips(pipeline.device)
     options = angle_options(pipeline)
     scene = pipeline.scene
@@ -70,9 +70,13 @@ def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: i
     if views is None:
         views = list(scene.train_indices) + list(scene.eval_indices)
     start = time.perf_counter()
+    train = set(scene.train_indices)
     for i in progress(views, "evaluating views"):
-        if time_limit is not None and rows and time.perf_counter() - start >= time_limit:
-            break
+        split = "train" if i in train else "heldout"
+        elapsed = time.perf_counter() - start
+        if (time_limit is not None and rows and elapsed + elapsed / len(rows) > time_limit
+                and any(r["split"] == split for r in rows)):
+            continue
         v = view_images(pipeline, i)
         rows.append(view_metrics(v, lpips, options))
         if v.split == "train" and len(kept) < keep:
