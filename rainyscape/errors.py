@@ -17,3 +17,14 @@ class DataError(RainyScapeError):
 
 class PluginError(RainyScapeError):
     """A plugin that cannot be found or imported."""
+
+
+class RunBusyError(RainyScapeError):
+    """A run folder another process is working in (it holds the folder's lock)."""
+
+
+def warn(message: str) -> None:
+    """A warning the user should see (input accepted, but probably not what they meant)."""
+    import sys
+
+    print(f"rainyscape: warning: {message}", file=sys.stderr)

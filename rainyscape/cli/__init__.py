@@ -2,12 +2,30 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from typing import Callable
 
+OOM_HINT = ("lower the batch (phases.NAME.patches, phases.NAME.patch_size), the field's chunk "
+            "(field.chunk) or the image size (dataparser.downscale=2)")
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0][:300] if text else type(exc).__name__
+
+
+def _is_out_of_memory(exc: BaseException) -> bool:
+    return isinstance(exc, MemoryError) or type(exc).__name__ == "OutOfMemoryError" or (
+        isinstance(exc, RuntimeError) and "DefaultCPUAllocator: can't allocate memory" in str(exc))
+
 
 def run_cli(main: Callable[[list[str]], int], argv: list[str] | None = None) -> int:
-    """Run a CLI body; user errors become one clear line on stderr and a non-zero exit code."""
+    """Run a CLI body; user errors become one clear line on stderr and exit code 2.
+
+    Running out of memory is one line too (exit code 2, with what to lower). Anything else
+    is a bug: one line naming it and a file holding the traceback (exit code 1);
+    ``RAINYSCAPE_DEBUG=1`` lets the traceback through instead."""
     from rainyscape.errors import RainyScapeError
 
     try:
@@ -18,7 +36,28 @@ def run_cli(main: Callable[[list[str]], int], argv: list[str] | None = None) -> 
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # e.g. `rs-eval --help | head`: the reader left; exit quietly
-        import os
-
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 1
+    except Exception as exc:
+        if os.environ.get("RAINYSCAPE_DEBUG"):
+            raise
+        if _is_out_of_memory(exc):
+            print(f"error: out of memory ({_first_line(exc)}); {OOM_HINT}", file=sys.stderr)
+            return 2
+        where = _save_traceback()
+        print(f"error: unexpected {type(exc).__name__}: {_first_line(exc)} (a bug in rainyscape or "
+              f"a plugin; traceback in {where}, or rerun with RAINYSCAPE_DEBUG=1)", file=sys.stderr)
+        return 1
+
+
+def _save_traceback() -> str:
+    import tempfile
+    import traceback
+
+    try:
+        fd, path = tempfile.mkstemp(prefix="rainyscape-traceback-", suffix=".txt")
+        with os.fdopen(fd, "w") as fh:
+            fh.write(traceback.format_exc())
+        return path
+    except OSError:
+        return "(could not be saved)"

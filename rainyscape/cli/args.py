@@ -35,9 +35,11 @@ HELP_FLAGS = ("--help", "-h")
 HELP_COLUMN = 32  # where --help starts an option's help text (at most)
 
 
-def opt(default: Any, help: str = "") -> Any:
-    """A dataclass field with a default and the line ``--help`` shows for it."""
-    return field(default=default, metadata={"help": help})
+def opt(default: Any, help: str = "", lo: float | None = None, hi: float | None = None,
+        above: float | None = None) -> Any:
+    """A dataclass field with a default, the line ``--help`` shows for it and optionally the
+    range its value must lie in (``lo`` .. ``hi``, greater than ``above``)."""
+    return field(default=default, metadata={"help": help, "min": lo, "max": hi, "above": above})
 
 
 @dataclass(frozen=True)
@@ -64,6 +66,7 @@ class Args:
     positional: list[str] = field(default_factory=list)
     actions: set[str] = field(default_factory=set)  # --help / -h and the command's actions given
     overrides: list[str] = field(default_factory=list)  # key=value passed through, in order
+    ranges: dict[str, Any] = field(default_factory=dict, repr=False)  # option -> its field's metadata
 
     @property
     def help(self) -> bool:
@@ -85,6 +88,11 @@ def _option_types(command: Command) -> dict[str, Any]:
         hints = typing.get_type_hints(cls)
         out.update({f.name: hints[f.name] for f in fields(cls)})
     return out
+
+
+def _option_metadata(command: Command) -> dict[str, Any]:
+    """Every option's field metadata (help, range), by key, over all groups."""
+    return {f.name: f.metadata for _, cls in _groups(command) for f in fields(cls)}
 
 
 def _suggest(name: str, valid: list[str]) -> str:
@@ -114,8 +122,10 @@ def _flag_names(command: Command, types: dict[str, Any]) -> list[str]:
 def _set(args: Args, key: str, text: str, spelled: str, tp: Any, typed: str) -> None:
     """Record option ``key`` (written ``spelled``; the whole argument as ``typed``)."""
     from rainyscape.config import coerce  # here, not at the top: `--help` never needs it
+    from rainyscape.config.schema import check_range
 
     value = coerce(text, tp, spelled)
+    check_range(value, args.ranges.get(key, {}), spelled)
     n = _tuple_length(tp)
     if n > 1 and len(value) != n:
         raise ConfigError(f"{spelled}: expected {n} values, got {len(value)} ('{text}')")
@@ -126,7 +136,7 @@ def _set(args: Args, key: str, text: str, spelled: str, tp: Any, typed: str) -> 
 def parse(argv: list[str], command: Command) -> Args:
     """Read ``argv`` for ``command`` (see the module docstring); raises ConfigError."""
     types = _option_types(command)
-    args = Args(options=None)
+    args = Args(options=None, ranges=_option_metadata(command))
     i = 0
     while i < len(argv):
         arg = argv[i]
@@ -213,8 +223,19 @@ def _option_lines(cls: type, dashed: bool) -> list[tuple[str, str]]:
             left += f"  (--no-{flag})" if f.default is True else f"  (--{flag})"
         elif dashed:
             left = f"--{flag}, {left}"
-        out.append((left, f.metadata.get("help", "")))
+        text = f.metadata.get("help", "")
+        span = _range_text(f.metadata)
+        out.append((left, f"{text} ({span})" if span and text else text or span))
     return out
+
+
+def _range_text(metadata: Any) -> str:
+    lo, hi, above = metadata.get("min"), metadata.get("max"), metadata.get("above")
+    if lo is None and hi is None and above is None:
+        return ""
+    from rainyscape.config.schema import range_text  # config imports nothing heavy
+
+    return range_text(lo, hi, above)
 
 
 def help_text(command: Command) -> str:

@@ -1,12 +1,13 @@
 """rs-eval: evaluate a trained run with the evaluation protocol (docs/evaluation.md).
 
 Usage:
-  rs-eval RUN_DIR [device=auto|cpu|cuda] [step=N]
+  rs-eval RUN_DIR [device=auto|cpu|cuda] [step=N] [data=MOVED_SCENE]
 
 Computes PSNR / SSIM (and LPIPS when its weights are on this machine) of the rainy inputs,
 the renders at training views (with and without post-processing) and at held-out views
 against the clean images, the predicted rain angle and, on simulated scenes, the
-correlation of the predicted with the true rain layer. Writes RUN_DIR/metrics.json,
+correlation of the predicted with the true rain layer, on every view (a progress bar
+with its ETA shows on a terminal). Writes RUN_DIR/metrics.json,
 comparison strips under RUN_DIR/renders/strips and RUN_DIR/report.html.
 """
 
@@ -22,7 +23,8 @@ from rainyscape.cli.args import Command, opt, parse, print_help, run_dir
 @dataclass
 class EvalOptions:
     device: str = opt("auto", "auto | cpu | cuda")
-    step: int | None = opt(None, "the checkpoint's step (default: the latest)")
+    data: str = opt("", "the scene folder, if it moved since training (config.yml names the old one)")
+    step: int | None = opt(None, "the checkpoint's step (default: the latest)", lo=0)
 
 
 COMMAND = Command("rs-eval", __doc__, EvalOptions, positional="RUN_DIR")
@@ -41,7 +43,9 @@ def main(argv: list[str]) -> int:
     from rainyscape.engine.run import load_run
     from rainyscape.eval.protocol import evaluate_pipeline, write_metrics
 
-    pipeline, step = load_run(folder, opts.device, opts.step)
+    pipeline, step = load_run(folder, opts.device, opts.step, data=opts.data)
+    print(f"evaluating every view ({pipeline.scene.num_images}) of {folder} at step {step}",
+          file=sys.stderr)
     metrics = evaluate_pipeline(pipeline, folder)
     metrics["step"] = step
     write_metrics(folder, metrics)

@@ -2,7 +2,8 @@
 
 Usage:
   rs-export RUN_DIR [what=auto|mesh|gaussians|cameras] [format=ply|glb] [resolution=128]
-                    [level=DENSITY] [out=RUN_DIR/export] [device=auto] [--no-images] [force=true]
+                    [level=DENSITY] [out=RUN_DIR/export] [device=auto] [data=MOVED_SCENE]
+                    [--no-images] [force=true]
 
 what=auto exports the field (Gaussians: the standard 3DGS point_cloud.ply; density fields:
 a marching-cubes mesh) and the cameras. Meshes: the density is sampled on a lattice over
@@ -27,11 +28,12 @@ from rainyscape.cli.args import Command, opt, parse, print_help, run_dir
 class ExportArgs:
     what: str = opt("auto", "auto | mesh | gaussians | cameras")
     format: str = opt("ply", "mesh file format: ply | glb")
-    resolution: int = opt(128, "mesh: lattice samples along the scene box's longest side")
+    resolution: int = opt(128, "mesh: lattice samples along the scene box's longest side", lo=8, hi=2048)
     level: float | None = opt(None, "mesh: density of the surface (default: one step half opaque)")
     out: str = opt("", "output folder (default: RUN_DIR/export)")
     images: bool = opt(True, "cameras: the de-rained render of every view under images/")
     device: str = opt("auto", "auto | cpu | cuda")
+    data: str = opt("", "the scene folder, if it moved since training (config.yml names the old one)")
     force: bool = opt(False, "write into a non-empty out folder (replacing what the export writes)")
 
 
@@ -58,15 +60,13 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"rs-export: what must be auto, mesh, gaussians or cameras, got '{opts.what}'")
     if opts.format not in ("ply", "glb"):
         raise ConfigError(f"rs-export: format must be ply or glb, got '{opts.format}'")
-    if opts.resolution < 8:
-        raise ConfigError(f"rs-export: resolution must be at least 8, got {opts.resolution}")
     out = Path(opts.out).expanduser() if opts.out else folder / "export"
     check_output_folder(out, opts.force)
     from rainyscape.components import PlyExportable
     from rainyscape.engine.run import load_run
     from rainyscape.eval import export
 
-    pipeline, step = load_run(folder, opts.device)
+    pipeline, step = load_run(folder, opts.device, data=opts.data)
     what = opts.what
     if what == "auto":
         what = "gaussians" if isinstance(pipeline.field, PlyExportable) else "mesh"

@@ -27,21 +27,23 @@ KINDS = ("video", "images")
 class ProcessArgs:
     data: str = opt("", "the video file (video) or the folder of photos (images)")
     output_dir: str = opt("", "scene folder to write")
-    num_frames: int = opt(100, "video: frames kept, spread over the clip")
+    num_frames: int = opt(100, "video: frames kept, spread over the clip", lo=2)
     crop: tuple[float, float, float, float] = opt((0.0, 0.0, 0.0, 0.0),
-                                                  "fractions of the frame cut from the top, bottom, left, right")
-    max_side: int = opt(0, "downsize so the longer side is at most this many pixels (0: keep)")
+                                                  "fractions of the frame cut from the top, bottom, left, right",
+                                                  lo=0.0, hi=1.0)
+    max_side: int = opt(0, "downsize so the longer side is at most this many pixels (0: keep)", lo=0)
     camera_model: str = opt("SIMPLE_RADIAL", "COLMAP camera model fitted before undistortion")
     camera_per_image: bool = opt(False, "one camera per frame instead of one shared camera")
     matcher: str = opt("", "sequential | exhaustive (default: sequential for video, exhaustive for images)")
-    overlap: int = opt(10, "sequential matching: neighbours matched per frame")
+    overlap: int = opt(10, "sequential matching: neighbours matched per frame", lo=1)
     loop_detection: bool = opt(True, "sequential matching: detect loops")
     vocab_tree: str = opt("", "COLMAP vocabulary tree for loop detection (default: built from the clip)")
-    max_features: int = opt(8192, "SIFT features per frame")
-    min_registered: float = opt(0.5, "fail when fewer frames than this fraction register")
+    max_features: int = opt(8192, "SIFT features per frame", lo=64)
+    min_registered: float = opt(0.5, "fail when fewer frames than this fraction register", hi=1.0, above=0.0)
     init_min_tri_angle: float = opt(16.0, "degrees of parallax the first frame pair needs (lower it, "
-                                          "e.g. to 4, for narrow baselines such as a stereo pair)")
-    num_threads: int = opt(-1, "CPU threads (-1: all)")
+                                          "e.g. to 4, for narrow baselines such as a stereo pair)",
+                                    above=0.0, hi=90.0)
+    num_threads: int = opt(-1, "CPU threads (-1: all)", lo=-1)
     seed: int = opt(0, "random seed")
     overwrite: bool = opt(False, "replace the scene rs-process-data wrote in the output folder; other files are kept")
     quiet: bool = opt(False, "no progress output")
@@ -71,8 +73,6 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"{args.given['num_frames']}: SfM needs at least 2 frames")
     if kind == "images" and "num_frames" in args.given:
         raise ConfigError(f"{args.given['num_frames']}: only for a video (images keeps every photo)")
-    if opts.max_side < 0:
-        raise ConfigError(f"{args.given['max_side']}: must be >= 0")
 
     from rainyscape.process.frames import FrameOptions
     from rainyscape.process.pipeline import ProcessOptions, process_images, process_video

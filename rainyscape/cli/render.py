@@ -2,7 +2,7 @@
 
 Usage:
   rs-render RUN_DIR [views=all|train|heldout|NAME,...] [path=views|spiral] [frames=60] [fps=15]
-                    [device=auto] [--no-video]
+                    [device=auto] [data=MOVED_SCENE] [--no-video]
   rs-render RUN_DIR --embedding-study [patch=100] [variance=0.5] [seed=0]
 
 Writes under RUN_DIR/renders/: clean/ (renders), rain/ (predicted rain maps), error/
@@ -27,12 +27,13 @@ class RenderArgs:
     views: str = opt("all", "comma-separated view names / indices, or all | train | heldout")
     video: bool = opt(True, "render path.mp4 along a camera path")
     path: str = opt("views", "the video's camera path: views (through the training views) | spiral")
-    frames: int = opt(60, "video frames")
-    fps: int = opt(15, "video frames per second")
+    frames: int = opt(60, "video frames", lo=1)
+    fps: int = opt(15, "video frames per second", lo=1)
     device: str = opt("auto", "auto | cpu | cuda")
+    data: str = opt("", "the scene folder, if it moved since training (config.yml names the old one)")
     embedding_study: bool = opt(False, "the paper's Fig. 8 instead of the renders")
-    patch: int = opt(100, "embedding study: side of the centred window (pixels)")
-    variance: float = opt(0.5, "embedding study: variance of the noise added to s, v, p")
+    patch: int = opt(100, "embedding study: side of the centred window (pixels)", lo=1)
+    variance: float = opt(0.5, "embedding study: variance of the noise added to s, v, p", lo=0.0)
     seed: int = opt(0, "embedding study: noise seed")
 
 
@@ -48,12 +49,10 @@ def main(argv: list[str]) -> int:
     folder, opts = run_dir(args, COMMAND), args.options
     if opts.path not in ("views", "spiral"):
         raise ConfigError(f"rs-render: path must be views or spiral, got '{opts.path}'")
-    if opts.frames < 1 or opts.fps < 1:
-        raise ConfigError("rs-render: frames and fps must be positive")
     from rainyscape.engine.run import load_run
     from rainyscape.eval.report import write_report
 
-    pipeline, step = load_run(folder, opts.device)
+    pipeline, step = load_run(folder, opts.device, data=opts.data)
     if opts.embedding_study:
         from rainyscape.eval.embedding import write_embedding_study
 

@@ -2,7 +2,7 @@
 
 Usage:
   rs-train method=NAME [data=PATH] [dataparser=NAME] [key=value ...]
-  rs-train resume=RUN_DIR [trainer.KEY=value ...]
+  rs-train resume=RUN_DIR [trainer.KEY=value ...] [data=MOVED_SCENE] [force=true]
   rs-train --list                 methods and components, with their origin
   rs-train method=NAME --help     the method's full config tree with defaults
 
@@ -11,7 +11,14 @@ losses.TERM.KEY (weight, phases, detach or the term's options), postprocess.NAME
 trainer.KEY. Swap a component with field=NAME (likewise dataparser=, rain_head=,
 rain_head=none). profile=auto|cpu|gpu picks the method's recipe: auto (the default) runs
 the paper-scale gpu recipe on a CUDA device and the minutes-on-a-laptop cpu recipe
-elsewhere; config.yml records which one ran.
+elsewhere; config.yml records which one ran. With dataparser=auto (the default) and data=,
+the detected format's options are accepted too (dataparser.clean=..., shown by --help).
+
+A run folder is locked while it trains: a second rs-train resume= of it is refused, naming
+the process that holds it. A killed run resumes from its newest readable checkpoint
+(written every trainer.checkpoint_every steps and at least every
+trainer.checkpoint_minutes). Resuming a finished run is refused unless force=true (it would
+evaluate again and replace metrics.json and report.html; rs-eval does that).
 """
 
 from __future__ import annotations
@@ -26,7 +33,8 @@ from rainyscape.cli.args import Command, opt, parse, print_help
 @dataclass
 class TrainArgs:
     method: str = opt("", "the method to train (rs-train --list)")
-    resume: str = opt("", "a run folder to continue (only trainer.* overrides)")
+    resume: str = opt("", "a run folder to continue (only trainer.* and data= overrides)")
+    force: bool = opt(False, "resume: evaluate a finished run again (replaces its metrics and report)")
 
 
 # Every other key=value is a config override, validated by the method's config.
@@ -62,14 +70,16 @@ def main(argv: list[str]) -> int:
         asked = next((a.split("=", 1)[1] for a in reversed(rest) if a.startswith("profile=")), "cpu")
         cfg = config.method_config(method, [*rest, f"profile={'cpu' if asked == 'auto' else asked}"])
         print(f"{spec.name}: {spec.description}\n")
+        cfg = _with_detected_format(cfg)
         print(f"config, {cfg.profile} recipe (override with key=value; profile=auto, the default, "
               "runs the gpu recipe on a CUDA device and the cpu recipe elsewhere):")
         print(config.describe_tree(cfg))
         print("\ngpu recipe (profile=gpu): the cpu recipe with")
         print("\n".join(f"  {o}" for o in spec.gpu) or "  (no changes)")
         return 0
+    _stop_on_sigterm()
     if args.options.resume:
-        return _resume(args.options.resume, rest)
+        return _resume(args.options.resume, rest, args.options.force)
     if not method:
         raise ConfigError("which method? e.g. rs-train method=rainyscape-nerf (rs-train --list shows all)")
     from rainyscape import config
@@ -78,20 +88,62 @@ def main(argv: list[str]) -> int:
     return _run(cfg, run_dir=None)
 
 
-def _resume(run_dir: str, overrides: list[str]) -> int:
+def _with_detected_format(cfg):
+    """For --help: with data= and dataparser=auto, the detected format's options."""
+    from rainyscape.config.overrides import resolve_dataparser
+    from rainyscape.errors import RainyScapeError
+
+    try:
+        resolved = resolve_dataparser(cfg)
+    except RainyScapeError as exc:
+        print(f"(dataparser={cfg.dataparser.name}: {exc})\n")
+        return cfg
+    if resolved is None:
+        if cfg.dataparser.name == "auto":
+            print("(dataparser=auto: give data=SCENE to see the options of the format it detects)\n")
+        return cfg
+    print(f"dataparser={cfg.dataparser.name}: {cfg.data} is {resolved.dataparser.name}; its options "
+          f"are shown and accepted (dataparser.KEY=value)\n")
+    return resolved
+
+
+def _stop_on_sigterm() -> None:
+    """SIGTERM (kill, a batch scheduler's stop) ends training like Ctrl-C: a checkpoint is
+    saved and status.json says interrupted."""
+    import signal
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        signal.signal(signal.SIGTERM, stop)
+    except ValueError:  # not the main thread (tests calling main in a worker)
+        pass
+
+
+def _resume(run_dir: str, overrides: list[str], force: bool = False) -> int:
     from pathlib import Path
 
     from rainyscape import config
+    from rainyscape.engine.run import read_status
     from rainyscape.errors import ConfigError
 
-    path = Path(run_dir)
+    path = Path(run_dir).expanduser()
     if not (path / "config.yml").is_file():
         raise ConfigError(f"{path}: not a run folder (no config.yml)")
-    bad = [o for o in overrides if not o.startswith("trainer.")]
+    bad = [o for o in overrides if not o.startswith("trainer.") and not o.startswith("data=")]
     if bad:
-        raise ConfigError(f"resume accepts only trainer.* overrides, got '{bad[0]}'")
+        raise ConfigError(f"resume accepts only trainer.* and data= overrides, got '{bad[0]}'")
     cfg = config.load_yaml(path / "config.yml")
     cfg = config.apply_overrides(cfg, config.parse_overrides(overrides))
+    status = read_status(path)
+    if status.get("state") == "finished" and int(status.get("step", 0)) >= cfg.trainer.max_iters:
+        if not force:
+            raise ConfigError(
+                f"{path}: finished (step {status.get('step')} of {cfg.trainer.max_iters}); resuming would "
+                f"only evaluate it again and replace metrics.json and report.html. rs-eval {path} "
+                f"does that; raise trainer.max_iters to train longer, or pass force=true")
+        print(f"{path}: finished; evaluating it again (force=true)", file=sys.stderr)
     return _run(cfg, run_dir=path)
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import sys
 from dataclasses import fields
 from typing import Any
 
@@ -53,6 +54,9 @@ def apply_overrides(cfg: PipelineConfig, overrides: list[tuple[str, str]]) -> Pi
             comp = getattr(cfg, head)
             if comp is None:
                 raise ConfigError(f"{key}: this method has no {head}; set {head}=NAME first")
+            if head == "dataparser" and len(parts) == 2 and parts[1] not in {f.name for f in fields(comp.options)}:
+                _resolve_for_option(cfg, key)
+                comp = cfg.dataparser
             set_option(comp.options, parts[1:], value, head)
         elif head == "trainer":
             set_option(cfg.trainer, parts[1:], value, "trainer")
@@ -65,6 +69,43 @@ def apply_overrides(cfg: PipelineConfig, overrides: list[tuple[str, str]]) -> Pi
         else:
             raise ConfigError(unknown_key_message(key, head, TOP_KEYS))
     return materialize(cfg)
+
+
+def resolve_dataparser(cfg: PipelineConfig) -> PipelineConfig | None:
+    """``cfg`` with a resolving dataparser (``auto``) replaced by the one it picks for the
+    scene folder ``data=`` (its options carried over); None when it does not resolve or no
+    folder is set. Raises the parser's DataError for a folder it cannot read."""
+    cls = registry.load("dataparser", cfg.dataparser.name)
+    if not cfg.data or not callable(getattr(cls, "resolve", None)):
+        return None
+    name = cls.resolve(cfg.data)
+    if name == cfg.dataparser.name:
+        return None
+    out = copy.deepcopy(cfg)
+    target = materialize_component("dataparser", ComponentConfig(name, {}), "dataparser")
+    shared = {f.name for f in fields(target.options)} & {f.name for f in fields(cfg.dataparser.options)}
+    for k in shared:
+        setattr(target.options, k, getattr(cfg.dataparser.options, k))
+    out.dataparser = target
+    return out
+
+
+def _resolve_for_option(cfg: PipelineConfig, key: str) -> None:
+    """``dataparser.KEY`` unknown to the current (resolving) dataparser: resolve it from the
+    scene folder so that the detected format's options are accepted."""
+    cls = registry.load("dataparser", cfg.dataparser.name)
+    if not callable(getattr(cls, "resolve", None)):
+        return  # set_option names the valid keys
+    if not cfg.data:
+        valid = ", ".join(f.name for f in fields(cfg.dataparser.options))
+        raise ConfigError(f"{key}: dataparser={cfg.dataparser.name} knows only its common options "
+                          f"({valid}) until it sees the scene: give data=SCENE_FOLDER, or name the "
+                          "format with dataparser=NAME (rs-train --list)")
+    resolved = resolve_dataparser(cfg)
+    if resolved is not None:
+        print(f"dataparser={cfg.dataparser.name}: {cfg.data} is {resolved.dataparser.name}; "
+              f"using its options", file=sys.stderr)
+        cfg.dataparser = resolved.dataparser
 
 
 def _swap_component(cfg: PipelineConfig, head: str, value: str) -> None:

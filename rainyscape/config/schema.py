@@ -25,9 +25,39 @@ DETACHABLE = ("", "rendered", "rain")  # what a loss term may stop gradients int
 PROFILES = ("cpu", "gpu")  # a method's recipe for a laptop CPU, and its paper-scale one
 
 
-def bounded(default: Any, lo: float | None = None, hi: float | None = None, **kwargs) -> Any:
-    """A dataclass field whose value must lie in [lo, hi] (checked by :func:`coerce_field`)."""
-    return field(default=default, metadata={"min": lo, "max": hi}, **kwargs)
+def bounded(default: Any, lo: float | None = None, hi: float | None = None, *,
+            above: float | None = None, **kwargs) -> Any:
+    """A dataclass field whose value must lie in [lo, hi], and be greater than ``above`` when
+    given (checked by :func:`coerce_field`; for tuples, every item)."""
+    return field(default=default, metadata={"min": lo, "max": hi, "above": above}, **kwargs)
+
+
+def range_text(lo: float | None, hi: float | None, above: float | None = None) -> str:
+    """How a range reads in messages and ``--help``: "at least 1", "between 0 and 1", ..."""
+    parts = []
+    if above is not None:
+        parts.append(f"greater than {above:g}")
+    if lo is not None and hi is not None:
+        parts.append(f"between {lo:g} and {hi:g}")
+    elif lo is not None:
+        parts.append(f"at least {lo:g}")
+    elif hi is not None:
+        parts.append(f"at most {hi:g}")
+    return " and ".join(parts)
+
+
+def check_range(value: Any, metadata: Any, key: str) -> None:
+    """ConfigError when a number (or any number in a tuple / list) is outside the range that
+    ``metadata`` (a field's: ``min``, ``max``, ``above``) states."""
+    lo, hi, above = metadata.get("min"), metadata.get("max"), metadata.get("above")
+    if lo is None and hi is None and above is None:
+        return
+    for item in (value if isinstance(value, (tuple, list)) else [value]):
+        if not isinstance(item, (int, float)) or isinstance(item, bool):
+            continue
+        if ((lo is not None and item < lo) or (hi is not None and item > hi)
+                or (above is not None and item <= above)):
+            raise ConfigError(f"{key}: must be {range_text(lo, hi, above)}, got {item:g}")
 
 
 @dataclass
@@ -41,10 +71,14 @@ class TrainerConfig:
     log_every: int = bounded(25, 1)
     eval_every: int = bounded(500, 0)  # periodic evaluation on a few views (0: off)
     eval_views: int = bounded(2, 0)
-    checkpoint_every: int = bounded(1000, 0)  # steps between checkpoints (0: only at the end)
+    checkpoint_every: int = bounded(1000, 0)  # steps between checkpoints (0: only at the end) ...
+    checkpoint_minutes: float = bounded(5.0, 0.0)  # ... and at least this often in minutes (0: off)
     keep_checkpoints: int = bounded(2, 0)  # newest checkpoints kept (0: all)
     output_dir: str = "outputs"
     progress: bool = True
+    # The evaluation at the end of rs-train (rs-eval runs the whole protocol on every view):
+    final_eval_views: int = bounded(8, 0)  # views evaluated, spread over both splits (0: all)
+    final_eval_share: float = bounded(0.1, 0.0)  # ... stopping after this share of the training time (0: no limit)
 
 
 @dataclass
@@ -73,7 +107,7 @@ class ComponentConfig:
 @dataclass
 class LossConfig:
     name: str  # the registered loss component
-    weight: float = 1.0
+    weight: float = bounded(1.0, 0.0)
     phases: tuple[str, ...] = ()  # the phases it acts in (empty: the loss class's default phases)
     detach: str = ""  # "" | "rendered" | "rain": stop gradients into that input
     options: Any = field(default_factory=dict)
@@ -197,14 +231,7 @@ def coerce_field(cls: type, name: str, value: Any, key: str) -> Any:
     """``value`` coerced to field ``name`` of dataclass ``cls`` and checked against its range."""
     f = next(f for f in fields(cls) if f.name == name)
     out = coerce(value, typing.get_type_hints(cls)[name], key)
-    lo, hi = f.metadata.get("min"), f.metadata.get("max")
-    for item in (out if isinstance(out, (tuple, list)) else [out]):
-        if not isinstance(item, (int, float)) or isinstance(item, bool):
-            continue
-        if (lo is not None and item < lo) or (hi is not None and item > hi):
-            span = (f"at least {lo:g}" if hi is None else f"at most {hi:g}" if lo is None
-                    else f"between {lo:g} and {hi:g}")
-            raise ConfigError(f"{key}: must be {span}, got {item:g}")
+    check_range(out, f.metadata, key)
     return out
 
 

@@ -92,9 +92,13 @@ def from_dict(data: dict) -> PipelineConfig:
 
 
 def save_yaml(cfg: PipelineConfig, path: Path) -> None:
+    """Write ``config.yml`` atomically (a temporary file renamed in place)."""
     import yaml
 
-    Path(path).write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    tmp.replace(path)
 
 
 def load_yaml(path: Path) -> PipelineConfig:

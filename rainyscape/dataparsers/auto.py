@@ -43,6 +43,12 @@ class AutoParser(DataParser):
     def __init__(self, config: CommonParserConfig | None = None):
         super().__init__(config or CommonParserConfig())
 
+    @staticmethod
+    def resolve(path: str | Path) -> str:
+        """The dataparser that reads ``path`` (the config layer asks, to accept that
+        parser's options under ``dataparser=auto``)."""
+        return detect_format(Path(path).expanduser())
+
     def parse(self, path: Path) -> SceneData:
         path = Path(path)
         name = detect_format(path)

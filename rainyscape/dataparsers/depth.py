@@ -17,8 +17,9 @@ def read_depth_mat(path: Path, key: str, size: tuple[int, int]) -> np.ndarray:
     """(H, W) float32 z-depth; 0, negative and non-finite values mean "no surface" (inf)."""
     try:
         data = scipy.io.loadmat(path)
-    except (OSError, ValueError, NotImplementedError) as exc:
-        raise DataError(f"{path}: cannot read the depth .mat file ({exc})") from None
+    except Exception as exc:  # scipy raises many types on a damaged file (struct, zlib, Type...)
+        reason = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"{path}: cannot read the depth .mat file (truncated or damaged? {reason})") from None
     if key not in data:
         keys = [k for k in data if not k.startswith("__")]
         if len(keys) != 1:

@@ -162,6 +162,7 @@ class LLFFParser(DataParser):
             scene_cfg, name=root.resolve().name, source=root, images=images, cameras=cameras,
             image_names=[p.name for p in files], clean_images=clean,
             near=float(bounds[:, 0].min()), far=float(bounds[:, 1].max()), forward_facing=facing,
+            image_files=files,
             metadata={"format": "llff", "pose_convention": convention, "images": str(image_dir)})
 
     def _clean(self, root: Path, image_dir: Path, files: list[Path], size: tuple[int, int]):

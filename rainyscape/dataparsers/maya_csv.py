@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from rainyscape.components import DataParser
+from rainyscape.config.schema import bounded
 from rainyscape.dataparsers.base import CommonParserConfig, assemble_scene
 from rainyscape.dataparsers.depth import depth_bounds, points_from_depth, read_depth_mat
 from rainyscape.dataparsers.images import clean_image_paths, list_images, read_rgba, read_stack
@@ -37,7 +38,7 @@ class MayaCsvConfig(CommonParserConfig):
     depth_key: str = "depth"
     rain: str = "rain"  # folder of <stem>.png RGBA rain layers ("" or missing: none)
     points_from_depth: bool = True  # sparse points for 3DGS: back-projected depth samples
-    max_points: int = 20000
+    max_points: int = bounded(20000, 0)
     check_units: bool = True  # reject radians / inches that would silently give wrong cameras
 
 
@@ -189,7 +190,7 @@ class MayaCsvParser(DataParser):
         return assemble_scene(
             cfg, name=root.resolve().name, source=root, images=images, cameras=cameras,
             image_names=[p.name for p in files], clean_images=clean, depths=depths, rain_layers=rain,
-            points=points, point_colors=colors, near=near, far=far,
+            points=points, point_colors=colors, near=near, far=far, image_files=files,
             metadata={"format": "maya-csv", "world": "Maya, Y up", "cameras_csv": str(csv_path)})
 
     def _image_dir(self, root: Path) -> Path:

@@ -6,6 +6,13 @@ Blender's ``camera_angle_x`` (and ``camera_angle_y``). Distortion (``k1 k2 k3 k4
 ``camera_model`` OPENCV or OPENCV_FISHEYE) is removed from the images with OpenCV, keeping
 the pinhole intrinsics. Clean images: a folder named by ``clean=`` holding the same file
 names, or (``auto``) the authors' ``_rain`` -> ``_wo_rain`` sibling of the image folder.
+nerfstudio's ``train_filenames`` / ``val_filenames`` / ``test_filenames`` give the held-out
+split when present (val and test are held out; ``dataparser.holdout_file`` overrides them).
+
+Checked on reading: every ``transform_matrix`` is a rigid motion (its 3 x 3 block a
+rotation), field-of-view angles lie in (0, 180) degrees, and lens distortion is plausible
+(the radial factor stays within [1/5, 5] and the undistorted radius keeps growing out to the
+image corners).
 
 :func:`transforms_content` is the package's one writer of the format (pinhole cameras):
 rs-process-data's scene folders, SceneData exports and rs-export all go through it.
@@ -25,7 +32,7 @@ import torch
 
 from rainyscape.cameras import Cameras, opencv_to_opengl, opengl_to_opencv
 from rainyscape.components import DataParser
-from rainyscape.dataparsers.base import CommonParserConfig, assemble_scene
+from rainyscape.dataparsers.base import CommonParserConfig, ImageIndex, assemble_scene
 from rainyscape.dataparsers.images import IMAGE_SUFFIXES, clean_image_paths, read_rgb
 from rainyscape.errors import DataError
 from rainyscape.scene import SceneData
@@ -131,8 +138,8 @@ def frame_camera(meta: dict, frame: dict, where: str, image_size: tuple[int, int
         fx = _number(get["fl_x"], f"{where}: fl_x")
         fy = _number(get["fl_y"], f"{where}: fl_y") if get["fl_y"] is not None else fx
     elif get["camera_angle_x"] is not None:
-        fx = 0.5 * width / math.tan(0.5 * _number(get["camera_angle_x"], f"{where}: camera_angle_x"))
-        fy = (0.5 * height / math.tan(0.5 * _number(get["camera_angle_y"], f"{where}: camera_angle_y"))
+        fx = 0.5 * width / math.tan(0.5 * _angle(get["camera_angle_x"], f"{where}: camera_angle_x"))
+        fy = (0.5 * height / math.tan(0.5 * _angle(get["camera_angle_y"], f"{where}: camera_angle_y"))
               if get["camera_angle_y"] is not None else fx)
     else:
         raise DataError(f"{where}: no focal length (fl_x or camera_angle_x)")
@@ -152,9 +159,61 @@ def frame_camera(meta: dict, frame: dict, where: str, image_size: tuple[int, int
         raise DataError(f"{where}: transform_matrix must be 4x4 (or 3x4), got shape {mat.shape}")
     if not np.isfinite(mat).all():
         raise DataError(f"{where}: transform_matrix holds non-finite numbers")
+    check_rigid(mat, where)
     dist = {k: _number(get[k], f"{where}: {k}") for k in ("k1", "k2", "k3", "k4", "p1", "p2") if get[k] is not None}
     model = str(get["camera_model"] or ("OPENCV" if dist else "PINHOLE")).upper()
-    return FrameCamera(mat, fx, fy, cx, cy, width, height, model, dist)
+    cam = FrameCamera(mat, fx, fy, cx, cy, width, height, model, dist)
+    check_distortion(cam, where)
+    return cam
+
+
+def _angle(value, where: str) -> float:
+    """A field-of-view angle in radians, in (0, pi)."""
+    x = _number(value, where)
+    if not 0 < x < math.pi:
+        raise DataError(f"{where} is {value}: a field of view in radians must lie strictly between "
+                        f"0 and pi (e.g. 0.69 for 40 degrees)")
+    return x
+
+
+def check_rigid(mat: np.ndarray, where: str, tol: float = 2e-2) -> None:
+    """DataError unless ``mat`` (4x4) is a camera pose: a rotation (orthonormal, determinant
+    +1) and a translation, bottom row 0 0 0 1."""
+    rot = mat[:3, :3]
+    if not np.allclose(mat[3], [0, 0, 0, 1], atol=1e-6):
+        raise DataError(f"{where}: transform_matrix's last row is {mat[3].tolist()}, not [0, 0, 0, 1]")
+    gram_err = float(np.abs(rot.T @ rot - np.eye(3)).max())
+    det = float(np.linalg.det(rot))
+    if gram_err > tol or det < 0:
+        what = ("all zero" if not rot.any() else f"determinant {det:.3g}" if abs(det - 1) > tol
+                else f"axes not orthonormal (off by {gram_err:.3g})")
+        raise DataError(f"{where}: transform_matrix's 3x3 block is not a rotation ({what}); "
+                        "expected a camera-to-world pose")
+
+
+def check_distortion(cam: FrameCamera, where: str) -> None:
+    """DataError for distortion no real lens has: the radial factor leaves [1/5, 5] or the
+    distorted radius stops growing before the image corners (the undistortion would fold)."""
+    d = cam.dist
+    if not any(abs(v) > 0 for v in d.values()):
+        return
+    corner = max(math.hypot(x - cam.cx, y - cam.cy) for x in (0, cam.width) for y in (0, cam.height))
+    r_max = corner / min(cam.fx, cam.fy)  # normalised radius of the farthest corner
+    r = np.linspace(0.0, r_max, 256)
+    if cam.model == "OPENCV_FISHEYE":
+        theta = np.arctan(r)
+        t2 = theta ** 2
+        rd = theta * (1 + d.get("k1", 0) * t2 + d.get("k2", 0) * t2 ** 2 + d.get("k3", 0) * t2 ** 3
+                      + d.get("k4", 0) * t2 ** 4)
+    else:
+        r2 = r ** 2
+        rd = r * (1 + d.get("k1", 0) * r2 + d.get("k2", 0) * r2 ** 2 + d.get("k3", 0) * r2 ** 3)
+    factor = rd[1:] / r[1:]
+    named = ", ".join(f"{k}={v:g}" for k, v in d.items() if v)
+    if factor.min() < 0.2 or factor.max() > 5 or (np.diff(rd) <= 0).any():
+        raise DataError(f"{where}: lens distortion {named} is implausible for this camera (it "
+                        f"would move image points by a factor of {factor.min():.2g} .. {factor.max():.2g}); "
+                        "check the coefficients")
 
 
 def undistort(image: np.ndarray, cam: FrameCamera, where: str) -> np.ndarray:
@@ -223,8 +282,31 @@ class TransformsJsonParser(DataParser):
         clean = self._clean(root, files, cams)
         return assemble_scene(
             cfg, name=root.resolve().name, source=root, images=torch.from_numpy(np.stack(images)),
-            cameras=cameras, image_names=names, clean_images=clean,
+            cameras=cameras, image_names=names, clean_images=clean, image_files=files,
+            heldout=self._split(meta, json_path, names, files, root),
             metadata={"format": "transforms-json", "transforms": str(json_path)})
+
+    @staticmethod
+    def _split(meta: dict, json_path: Path, names: list[str], files: list[Path],
+               root: Path) -> tuple[list[str], str] | None:
+        """nerfstudio's held-out views: val_filenames and test_filenames, or else every frame
+        not in train_filenames (None when the file has none of these lists)."""
+        lists = {}
+        for key in ("train_filenames", "val_filenames", "test_filenames"):
+            value = meta.get(key)
+            if value is None:
+                continue
+            if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+                raise DataError(f"{json_path}: {key} must be a list of file paths")
+            lists[key] = value
+        if not lists:
+            return None
+        held = lists.get("val_filenames", []) + lists.get("test_filenames", [])
+        where = f"{json_path}: {' / '.join(k for k in lists if k != 'train_filenames') or 'train_filenames'}"
+        if held or "train_filenames" not in lists:
+            return held, where
+        train = set(ImageIndex(names, files, root).indices(lists["train_filenames"], where))
+        return [n for i, n in enumerate(names) if i not in train], where
 
     def _clean(self, root: Path, files: list[Path], cams: list[FrameCamera]):
         # Frames may sit in different folders: each looks for its own clean sibling.

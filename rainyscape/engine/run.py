@@ -1,13 +1,19 @@
-"""Run folders around a training run: create or reopen one, record its state, restore it.
+"""Run folders around a training run: create or reopen one, lock it, record its state,
+restore it.
 
 Run folder contents: config.yml (plain YAML), status.json (running / stopped / finished /
-failed / interrupted), log.jsonl (training curves), checkpoints/; evaluation adds
-metrics.json, renders/ and report.html.
+failed / interrupted; a running one names its pid and host), run.lock (held by the process
+training there), log.jsonl (training curves), checkpoints/; evaluation adds metrics.json,
+renders/ and report.html.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import os
+import socket
+import sys
 import time
 import traceback
 from contextlib import contextmanager
@@ -17,12 +23,14 @@ from typing import Callable, Iterator
 
 from rainyscape import config as config_mod
 from rainyscape.config import PipelineConfig
-from rainyscape.engine.checkpoint import checkpoint_path, latest_checkpoint, load_checkpoint
+from rainyscape.engine.checkpoint import (checkpoint_path, load_checkpoint, load_newest_valid,
+                                          remove_partial_writes)
+from rainyscape.engine.lock import RunLock, is_locked
 from rainyscape.engine.pipeline import Pipeline, build_pipeline, load_scene, resolve_device
 from rainyscape.engine.run_dir import new_run_dir
 from rainyscape.engine.snapshot import restore_models
 from rainyscape.engine.trainer import Trainer, seed_everything
-from rainyscape.errors import ConfigError, RainyScapeError
+from rainyscape.errors import ConfigError, DataError, RainyScapeError
 
 
 @dataclass
@@ -33,22 +41,62 @@ class RunResult:
 
 @dataclass
 class Run:
-    """A run folder with its pipeline and trainer, ready to train (resumed if it was)."""
+    """A run folder with its pipeline and trainer, ready to train (resumed if it was). It
+    holds the folder's lock until :meth:`close` (or the end of a ``with`` block)."""
 
     run_dir: Path
     pipeline: Pipeline
     trainer: Trainer
+    lock: RunLock | None = None
 
     @property
     def finished(self) -> bool:
         return self.trainer.step >= self.pipeline.config.trainer.max_iters
 
+    def close(self) -> None:
+        if self.lock is not None:
+            self.lock.release()
+
+    def __enter__(self) -> "Run":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
 
 def write_status(run_dir: Path, state: str, **extra) -> None:
+    """status.json, atomically; a "running" status names this process (pid, host)."""
     data = {"state": state, "time": time.strftime("%Y-%m-%d %H:%M:%S"), **extra}
-    tmp = run_dir / "status.json.tmp"
+    if state == "running":
+        data.update(pid=os.getpid(), host=socket.gethostname())
+    tmp = Path(run_dir) / "status.json.tmp"
     tmp.write_text(json.dumps(data, indent=2))
-    tmp.replace(run_dir / "status.json")
+    tmp.replace(Path(run_dir) / "status.json")
+
+
+def read_status(run_dir: Path) -> dict:
+    """status.json ({} when absent or unreadable). A "running" status whose process is gone
+    (nobody holds the folder's lock: killed, crashed, power cut) is corrected to
+    "interrupted" on disk and in the answer."""
+    path = Path(run_dir) / "status.json"
+    try:
+        status = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(status, dict):
+        return {}
+    if status.get("state") == "running" and not is_locked(run_dir):
+        owner = f"pid {status.get('pid', '?')}" + (f" on {status['host']}" if status.get("host") else "")
+        status = {**status, "state": "interrupted",
+                  "note": f"the training process ({owner}) ended without recording its end "
+                          "(killed or crashed); resume with rs-train resume=RUN_DIR"}
+        try:
+            tmp = path.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(status, indent=2))
+            tmp.replace(path)
+        except OSError:
+            pass
+    return status
 
 
 @contextmanager
@@ -73,42 +121,81 @@ def scene_folder(cfg: PipelineConfig) -> Path:
 
 def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
              evaluator: Callable[[Pipeline], dict] | None = None) -> Run:
-    """A new run folder for ``cfg`` (or ``run_dir`` reopened to resume): scene, pipeline and
-    trainer built, checkpoint loaded. ``evaluator(pipeline)`` is the trainer's periodic
-    evaluation. Input errors surface before any folder is made."""
+    """A new run folder for ``cfg`` (or ``run_dir`` reopened to resume): locked, scene,
+    pipeline and trainer built, checkpoint loaded. ``evaluator(pipeline)`` is the trainer's
+    periodic evaluation. Input errors surface before any folder is made; a folder another
+    process trains in raises RunBusyError before anything in it changes. Close the run
+    (``with open_run(...) as run``) to release the lock."""
     device = resolve_device(cfg.trainer.device)
-    seed_everything(cfg.trainer.seed)
-    scene = load_scene(cfg, scene_folder(cfg))
-    if run_dir is None:
-        run_dir = new_run_dir(cfg.trainer.output_dir, scene.name, cfg.method)
-    elif latest_checkpoint(Path(run_dir) / "checkpoints") is None:
-        raise RainyScapeError(f"{run_dir}: no checkpoint to resume from")
-    run_dir = Path(run_dir)
-    config_mod.save_yaml(cfg, run_dir / "config.yml")
-    write_status(run_dir, "running")
-    with recording_failures(run_dir):
-        pipeline = build_pipeline(cfg, scene, device)
-        evaluate = None if evaluator is None else (lambda: evaluator(pipeline))
-        trainer = Trainer(pipeline, run_dir, evaluate)
-        if latest_checkpoint(run_dir / "checkpoints") is not None:
-            trainer.load()
-    return Run(run_dir, pipeline, trainer)
+    lock = None
+    if run_dir is not None:  # lock first: nothing in a busy folder may change
+        lock = RunLock(run_dir, "rs-train").acquire()
+    try:
+        seed_everything(cfg.trainer.seed)
+        scene = load_scene(cfg, scene_folder(cfg))
+        if run_dir is None:
+            run_dir = new_run_dir(cfg.trainer.output_dir, scene.name, cfg.method)
+            lock = RunLock(run_dir, "rs-train").acquire()
+        run_dir = Path(run_dir)
+        previous = read_status(run_dir)  # before it is overwritten: a dead owner shows here
+        remove_partial_writes(run_dir / "checkpoints")
+        config_mod.save_yaml(cfg, run_dir / "config.yml")
+        write_status(run_dir, "running")
+        with recording_failures(run_dir):
+            pipeline = build_pipeline(cfg, scene, device)
+            evaluate = None if evaluator is None else (lambda: evaluator(pipeline))
+            trainer = Trainer(pipeline, run_dir, evaluate)
+            if previous.get("state") == "interrupted" and previous.get("note"):
+                print(f"rainyscape: {run_dir}: {previous['note'].split(';')[0]}", file=sys.stderr)
+            if any((run_dir / "checkpoints").glob("step-*.pt")):
+                used = trainer.load()
+                print(f"resuming {run_dir} from {used.name} (step {trainer.step})", file=sys.stderr)
+            elif previous:
+                print(f"rainyscape: {run_dir}: no checkpoint yet; training again from step 0",
+                      file=sys.stderr)
+    except BaseException:
+        if lock is not None:
+            lock.release()
+        raise
+    return Run(run_dir, pipeline, trainer, lock)
 
 
-def load_run(run_dir: Path, device: str = "auto", step: int | None = None) -> tuple[Pipeline, int]:
-    """Rebuild a run's pipeline from config.yml and load its latest (or given) checkpoint."""
+def load_run(run_dir: Path, device: str = "auto", step: int | None = None,
+             data: str | Path | None = None) -> tuple[Pipeline, int]:
+    """Rebuild a run's pipeline from config.yml and load its latest readable (or given)
+    checkpoint. ``data`` replaces the scene folder config.yml names (a moved scene)."""
     run_dir = Path(run_dir)
     if not (run_dir / "config.yml").is_file():
         raise RainyScapeError(f"{run_dir}: not a run folder (no config.yml)")
     cfg = config_mod.load_yaml(run_dir / "config.yml")
+    if data:
+        cfg = dataclasses.replace(cfg, data=str(data))
     dev = resolve_device(device)
-    pipeline = build_pipeline(cfg, load_scene(cfg, scene_folder(cfg)), dev)
-    folder = run_dir / "checkpoints"
-    ckpt = checkpoint_path(folder, step) if step is not None else latest_checkpoint(folder)
-    if ckpt is None or not ckpt.is_file():
-        raise RainyScapeError(f"{run_dir}: no checkpoint found")
-    state = load_checkpoint(ckpt, dev)
-    restore_models(state, pipeline.models())
+    folder = scene_folder(cfg)
+    if not folder.exists():
+        hint = "pass data=NEW_FOLDER" if not data else "check data="
+        raise DataError(f"{folder}: the run's scene folder is not there (moved?); {hint} "
+                        f"(config.yml: {run_dir / 'config.yml'})")
+    pipeline = build_pipeline(cfg, load_scene(cfg, folder), dev)
+    ckpts = run_dir / "checkpoints"
+    if step is not None:
+        path = checkpoint_path(ckpts, step)
+        if not path.is_file():
+            have = ", ".join(str(int(p.stem.split("-")[1])) for p in sorted(ckpts.glob("step-*.pt")))
+            raise RainyScapeError(f"{run_dir}: no checkpoint of step {step} (have: {have or 'none'})")
+        state = load_checkpoint(path, dev)
+    else:
+        found = load_newest_valid(ckpts, dev)
+        if found is None:
+            raise RainyScapeError(f"{run_dir}: no checkpoint found (the run was stopped before its "
+                                  f"first one; resume it with rs-train resume={run_dir})")
+        path, state = found
+    try:
+        restore_models(state, pipeline.models())
+    except (KeyError, IndexError, TypeError, ValueError, RuntimeError) as exc:
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise RainyScapeError(f"{path}: does not fit this run's config ({type(exc).__name__}: "
+                              f"{reason[:300]})") from None
     for model in pipeline.models().values():
         model.eval()
     return pipeline, int(state["step"])

@@ -24,12 +24,13 @@ from rainyscape.components import (Energy, LatentModel, LossContext, ParamGroup,
                                    TrainState)
 from rainyscape.config import PhaseConfig
 from rainyscape.engine import snapshot
-from rainyscape.engine.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from rainyscape.engine.checkpoint import (checkpoint_path, latest_checkpoint, load_checkpoint,
+                                          load_newest_valid, save_checkpoint)
 from rainyscape.engine.phases import PhaseSchedule
 from rainyscape.engine.pipeline import Pipeline, compute_losses
 from rainyscape.engine.progress import ProgressBar
-from rainyscape.engine.sampling import gather_pixels, sample_windows
-from rainyscape.errors import DataError
+from rainyscape.engine.sampling import MAX_WHOLE_IMAGE_PIXELS, batch_count, gather_pixels, sample_windows
+from rainyscape.errors import DataError, RainyScapeError
 from rainyscape.imaging.metrics import psnr
 
 
@@ -71,6 +72,9 @@ class Trainer:
         self.optimizers = self._make_optimizers()
         self.callbacks = list(self.p.field.callbacks())
         self.log_path = self.run_dir / "log.jsonl"
+        self.batch_sizes = {name: batch_count(p.patches, p.patch_size, self.scene.width, self.scene.height)
+                            for name, p in pipeline.config.phases.items()}
+        self.last_save = time.monotonic()
 
     # ------------------------------------------------------------------ set-up
 
@@ -101,8 +105,8 @@ class Trainer:
 
     # ------------------------------------------------------------------- steps
 
-    def _batch(self, phase: PhaseConfig):
-        view_ids, window = sample_windows(self.train_pool, phase.patches, phase.patch_size,
+    def _batch(self, name: str, phase: PhaseConfig):
+        view_ids, window = sample_windows(self.train_pool, self.batch_sizes[name], phase.patch_size,
                                           self.scene.width, self.scene.height, self.generator)
         target = gather_pixels(self.images, view_ids.to(self.device), window)
         return view_ids, window, target
@@ -113,7 +117,7 @@ class Trainer:
         self._set_lrs(phase)
         for cb in self.callbacks:
             cb.before_step(state)
-        view_ids, window, target = self._batch(phase)
+        view_ids, window, target = self._batch(name, phase)
         self.p.field.train()
         out = self.p.field.render(self.cameras[view_ids], window)
         heads = [self.p.heads[key] for key in phase.heads]
@@ -176,20 +180,33 @@ class Trainer:
                                       self.callbacks, self.generator)
 
     def save(self) -> Path:
+        self.last_save = time.monotonic()
         return save_checkpoint(self.run_dir / "checkpoints", self.step,
                                snapshot.capture(self.step, self._parts()), self.cfg.keep_checkpoints)
 
-    def load(self, path: Path | None = None) -> None:
-        path = path or latest_checkpoint(self.run_dir / "checkpoints")
+    def load(self, path: Path | None = None) -> Path:
+        """Restore the training state from ``path``, or from the newest checkpoint that reads
+        (an unreadable newer one is set aside as ``*.corrupt`` with a warning). Returns the
+        checkpoint used."""
         if path is None:
-            raise DataError(f"{self.run_dir}: no checkpoint to resume from")
-        state = load_checkpoint(path, self.device)
+            found = load_newest_valid(self.run_dir / "checkpoints", self.device, set_aside=True)
+            if found is None:
+                raise DataError(f"{self.run_dir}: no checkpoint to resume from")
+            path, state = found
+        else:
+            state = load_checkpoint(path, self.device)
+        try:
+            snapshot.restore_models(state, self.p.models())
+            # Fields may change their parameter set (densification): rebuild optimisers, then load.
+            self.groups = self._param_groups()
+            self.optimizers = self._make_optimizers()
+            snapshot.restore_rest(state, self._parts())
+        except (KeyError, IndexError, TypeError, ValueError, RuntimeError) as exc:
+            reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise RainyScapeError(f"{path}: does not fit this run's config ({type(exc).__name__}: "
+                                  f"{reason[:300]})") from None
         self.step = int(state["step"])
-        snapshot.restore_models(state, self.p.models())
-        # Fields may change their parameter set (densification): rebuild optimisers, then load.
-        self.groups = self._param_groups()
-        self.optimizers = self._make_optimizers()
-        snapshot.restore_rest(state, self._parts())
+        return path
 
     # -------------------------------------------------------------------- loop
 
@@ -197,8 +214,45 @@ class Trainer:
         with open(self.log_path, "a") as fh:
             fh.write(json.dumps(record) + "\n")
 
+    def cut_log(self) -> None:
+        """Drop log records past the current step (a killed run logged steps its last
+        checkpoint does not hold; they are trained again) and any torn last line."""
+        if not self.log_path.is_file():
+            return
+        kept, changed = [], False
+        for line in self.log_path.read_text().splitlines():
+            try:
+                record = json.loads(line)
+                keep = int(record.get("step", 0)) <= self.step
+            except (ValueError, TypeError, AttributeError):
+                keep = False
+            if keep:
+                kept.append(line)
+            changed |= not keep
+        if changed:
+            tmp = self.log_path.with_suffix(".jsonl.tmp")
+            tmp.write_text("".join(f"{line}\n" for line in kept))
+            tmp.replace(self.log_path)
+
+    def _announce_batches(self) -> None:
+        for name, phase in self.p.config.phases.items():
+            if self.batch_sizes[name] < phase.patches and self.phases.length(name):
+                w, h = self.scene.width, self.scene.height
+                print(f"phases.{name}: windows of whole {w}x{h} images; {phase.patches} of them a step "
+                      f"would be {phase.patches * w * h} pixels, so a step takes {self.batch_sizes[name]} "
+                      f"(a batch of whole images keeps within {MAX_WHOLE_IMAGE_PIXELS} pixels)",
+                      file=sys.stderr)
+
+    def _checkpoint_due(self) -> bool:
+        every, minutes = self.cfg.checkpoint_every, self.cfg.checkpoint_minutes
+        return bool((every and self.step % every == 0)
+                    or (minutes and time.monotonic() - self.last_save >= 60.0 * minutes))
+
     def train(self) -> None:
         stop = min(self.cfg.stop_at or self.cfg.max_iters, self.cfg.max_iters)
+        self.cut_log()
+        self._announce_batches()
+        self.last_save = time.monotonic()
         progress = ProgressBar(self.step, stop, enabled=self.cfg.progress)
         last_phase = None if self.step == 0 else self.phases.at(self.step - 1)[0]
         t0 = time.time()
@@ -219,7 +273,7 @@ class Trainer:
                     self._log({"step": self.step, "phase": phase, "eval": ev})
                     progress.eval = ev
                 progress.update(self.step, record)
-                if self.cfg.checkpoint_every and self.step % self.cfg.checkpoint_every == 0:
+                if self._checkpoint_due():
                     self.save()
         except KeyboardInterrupt:
             self.save()
@@ -228,7 +282,7 @@ class Trainer:
                   f"rs-train resume={self.run_dir}", file=sys.stderr)
             raise
         progress.close()
-        if latest_checkpoint(self.run_dir / "checkpoints") != self.run_dir / "checkpoints" / f"step-{self.step:07d}.pt":
+        if latest_checkpoint(self.run_dir / "checkpoints") != checkpoint_path(self.run_dir / "checkpoints", self.step):
             self.save()
         if self.step >= self.cfg.max_iters:
             for cb in self.callbacks:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -108,14 +109,26 @@ def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict,
     return row
 
 
-def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: int = 0
+def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: int = 0,
+                   views: list[int] | None = None, time_limit: float | None = None
                    ) -> tuple[list[dict], list[ViewImages]]:
-    """Per-view metrics of every view, and the images of the first ``keep`` training views."""
+    """Per-view metrics of ``views`` (default: every view), and the images of the first
+    ``keep`` training views. With ``time_limit`` (seconds) no view starts that would, at the
+    mean time a view has taken, end after it, except the first of each split."""
     lpips = lpips or load_lpips(pipeline.device)
     options = angle_options(pipeline)
     scene = pipeline.scene
     rows, kept = [], []
-    for i in progress(list(scene.train_indices) + list(scene.eval_indices), "evaluating views"):
+    if views is None:
+        views = list(scene.train_indices) + list(scene.eval_indices)
+    start = time.perf_counter()
+    train = set(scene.train_indices)
+    for i in progress(views, "evaluating views"):
+        split = "train" if i in train else "heldout"
+        elapsed = time.perf_counter() - start
+        if (time_limit is not None and rows and elapsed + elapsed / len(rows) > time_limit
+                and any(r["split"] == split for r in rows)):
+            continue
         v = view_images(pipeline, i)
         rows.append(view_metrics(v, lpips, options, fusion_controls(pipeline, v)))
         if v.split == "train" and len(kept) < keep:
@@ -124,11 +137,16 @@ def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: i
 
 
 @torch.no_grad()
-def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None) -> dict:
-    """The whole protocol on a trained pipeline; with ``run_dir`` it also saves the comparison
-    strips of a few training views under ``run_dir/renders/strips`` (used by the report)."""
+def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None, views: list[int] | None = None,
+                      time_limit: float | None = None) -> dict:
+    """The protocol on a trained pipeline, on ``views`` (default: every view; see
+    :func:`evaluate_views` for ``time_limit``); ``evaluated`` in the result names the views
+    measured. With ``run_dir`` it also saves the comparison strips of a few training views
+    under ``run_dir/renders/strips`` (used by the report)."""
     lpips = load_lpips(pipeline.device)
-    rows, kept = evaluate_views(pipeline, lpips, keep=STRIP_VIEWS if run_dir is not None else 0)
+    started = time.perf_counter()
+    rows, kept = evaluate_views(pipeline, lpips, keep=STRIP_VIEWS if run_dir is not None else 0,
+                                views=views, time_limit=time_limit)
     for v in kept:
         save_strip(v, Path(run_dir) / "renders" / "strips" / f"{Path(v.name).stem}.png")
     scene = pipeline.scene
@@ -141,6 +159,11 @@ def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None) -> dict:
         "views": {"train": len(scene.train_indices), "heldout": len(scene.eval_indices),
                   "width": scene.width, "height": scene.height},
         "lpips": lpips.describe(),
+        "evaluated": {"views": [r["view"] for r in rows],
+                      "train": sum(r["split"] == "train" for r in rows),
+                      "heldout": sum(r["split"] == "heldout" for r in rows),
+                      "all": len(rows) == scene.num_images,
+                      "seconds": round(time.perf_counter() - started, 2)},
         "summary": summarize(rows),
         "per_view": rows,
     }

@@ -181,6 +181,13 @@ def metric_table(metrics: dict) -> str:
     lp = metrics.get("lpips", {})
     if lp and not lp.get("available", False):
         note = f"<p class='note'>LPIPS unavailable: {html.escape(lp.get('reason', ''))}.</p>"
+    done = metrics.get("evaluated", {})
+    if done and not done.get("all", True):
+        views = metrics.get("views", {})
+        total = views.get("train", 0) + views.get("heldout", 0)
+        note += (f"<p class='note'>Measured on {len(done.get('views', []))} of {total} views "
+                 f"({done.get('train', 0)} training, {done.get('heldout', 0)} held-out; the bounded "
+                 "evaluation at the end of rs-train). rs-eval RUN_DIR measures every view.</p>")
     return f"<table>{head}{body}</table>{note}"
 
 
@@ -244,7 +251,9 @@ def build_report(run_dir: Path) -> str:
     if not (run_dir / "config.yml").is_file():
         raise RainyScapeError(f"{run_dir}: not a run folder (no config.yml)")
     metrics = _read_json(run_dir / "metrics.json")
-    status = _read_json(run_dir / "status.json")
+    from rainyscape.engine.run import read_status  # a dead owner's "running" reads as interrupted
+
+    status = read_status(run_dir)
     train, evals = read_log(run_dir / "log.jsonl")
     title = f"{metrics.get('method', run_dir.parent.name)} on {metrics.get('scene', run_dir.parent.parent.name)}"
     step = train[-1]["step"] if train else status.get("step", 0)

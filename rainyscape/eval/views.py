@@ -18,10 +18,36 @@ from rainyscape.imaging.metrics import psnr
 
 
 def progress(items: list, what: str, unit: str = "view") -> Iterable:
-    """A console progress bar over ``items`` (only when stderr is a terminal)."""
+    """A console progress bar with its ETA over ``items`` (only when stderr is a terminal)."""
     from tqdm import tqdm
 
     return tqdm(items, desc=what, unit=unit, file=sys.stderr, disable=None, leave=False)
+
+
+def spread(items: list, count: int) -> list:
+    """``count`` items spread evenly over ``items`` (first and last included; all if fewer)."""
+    if count <= 0 or count >= len(items):
+        return list(items)
+    if count == 1:
+        return [items[len(items) // 2]]
+    step = (len(items) - 1) / (count - 1)
+    return [items[round(k * step)] for k in range(count)]
+
+
+def choose_views(train: list[int], heldout: list[int], count: int) -> list[int]:
+    """Up to ``count`` views (0: all) spread evenly over each split, half from each where
+    both have enough, in an order that alternates the splits (so that a time limit still
+    leaves some of each)."""
+    if count <= 0:
+        return list(train) + list(heldout)
+    n_held = min(len(heldout), count // 2 if train else count)
+    n_train = min(len(train), count - n_held)
+    n_held = min(len(heldout), count - n_train)  # unused train room goes to held-out views
+    a, b = spread(list(train), n_train), spread(list(heldout), n_held)
+    out = []
+    for k in range(max(len(a), len(b))):
+        out += a[k:k + 1] + b[k:k + 1]
+    return out
 
 
 def to_float(u8: Tensor, device) -> Tensor:

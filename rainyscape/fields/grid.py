@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from rainyscape.components import Callback, ParamGroup, TrainState
+from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.fields.contraction import contract, contraction_stretch
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
@@ -78,37 +79,37 @@ class GridField(RayField):
 
     @dataclass
     class Config:
-        resolution_init: int = 16  # cube root of the lattice size of the contracted cube at the start ...
-        resolution_final: int = 128  # ... and after the last growth
-        growth_at: tuple[float, ...] = (0.05, 0.1, 0.2, 0.3, 0.4)  # fractions of the run where it grows
+        resolution_init: int = bounded(16, 2)  # cube root of the lattice size of the contracted cube at the start ...
+        resolution_final: int = bounded(128, 2)  # ... and after the last growth
+        growth_at: tuple[float, ...] = bounded((0.05, 0.1, 0.2, 0.3, 0.4), 0.0, 1.0)  # fractions of the run where it grows
         # vm: measured 1.1 dB better after 300 steps and twice as fast per step as dense (docs/benchmarks.md)
         density_grid: Literal["dense", "vm"] = "vm"
-        density_components: int = 4  # vm density: components per mode
-        color_components: int = 8  # factorised colour grid: components per mode (x3 modes)
-        feature_dim: int = 16  # colour features fed to the MLP
-        hidden: int = 32  # MLP width
-        view_freqs: int = 2  # positional-encoding frequencies of the view direction
-        step_ratio: float = 0.5  # sample spacing in voxels
-        density_scale: float = 25.0  # sigma = scale * softplus(grid + shift)
+        density_components: int = bounded(4, 1)  # vm density: components per mode
+        color_components: int = bounded(8, 1)  # factorised colour grid: components per mode (x3 modes)
+        feature_dim: int = bounded(16, 1)  # colour features fed to the MLP
+        hidden: int = bounded(32, 1)  # MLP width
+        view_freqs: int = bounded(2, 0)  # positional-encoding frequencies of the view direction
+        step_ratio: float = bounded(0.5, above=0.0)  # sample spacing in voxels
+        density_scale: float = bounded(25.0, above=0.0)  # sigma = scale * softplus(grid + shift)
         density_shift: float = -5.0  # a zero grid: a light haze the first steps carve
-        box_scale: float = 1.0  # the uncontracted region: the scene box scaled about its centre
+        box_scale: float = bounded(1.0, above=0.0)  # the uncontracted region: the scene box scaled about its centre
         # last-sample: the last sample takes the light that is left (NeRF), so far content and
         # sky live on the outer shell; a learned constant would rather explain the commonest
         # surface colour (a grey road) and drain its density.
         background: Literal["last-sample", "black", "white"] = "last-sample"
-        occupancy_resolution: int = 64
-        occupancy_from: float = 0.2  # fraction of the run before the first occupancy update
-        occupancy_every: int = 25  # steps between updates
-        occupancy_threshold: float = 0.01  # opacity of one step below which a cell is empty
-        weight_threshold: float = 1e-4  # colour is computed only where a sample's weight reaches this
-        transmittance_threshold: float = 1e-4  # samples behind this much opacity get no gradient
-        lr_density: float = 0.1
-        lr_color: float = 0.1
-        lr_network: float = 1e-3
-        lr_decay: float = 0.1  # every lr x lr_decay per lr_decay_steps (exponentially)
-        lr_decay_steps: int = 3000
-        chunk: int = 8192  # rays per chunk when rendering without gradients
-        train_chunk: int = 0  # rays per gradient-checkpointed chunk in training (0: one pass)
+        occupancy_resolution: int = bounded(64, 2)
+        occupancy_from: float = bounded(0.2, 0.0, 1.0)  # fraction of the run before the first occupancy update
+        occupancy_every: int = bounded(25, 1)  # steps between updates
+        occupancy_threshold: float = bounded(0.01, 0.0, 1.0)  # opacity of one step below which a cell is empty
+        weight_threshold: float = bounded(1e-4, 0.0, 1.0)  # colour is computed only where a sample's weight reaches this
+        transmittance_threshold: float = bounded(1e-4, 0.0, 1.0)  # samples behind this much opacity get no gradient
+        lr_density: float = bounded(0.1, 0.0)
+        lr_color: float = bounded(0.1, 0.0)
+        lr_network: float = bounded(1e-3, 0.0)
+        lr_decay: float = bounded(0.1, above=0.0)  # every lr x lr_decay per lr_decay_steps (exponentially)
+        lr_decay_steps: int = bounded(3000, 0)
+        chunk: int = bounded(8192, 1)  # rays per chunk when rendering without gradients
+        train_chunk: int = bounded(0, 0)  # rays per gradient-checkpointed chunk in training (0: one pass)
 
     def __init__(self, config: Config, scene: SceneData):
         super().__init__()

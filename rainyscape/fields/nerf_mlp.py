@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from rainyscape.components import ParamGroup
+from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
 from rainyscape.fields.ndc import average_pose, ndc_points, ndc_rays, ndc_to_distance
@@ -68,22 +69,22 @@ class NerfMLPField(RayField):
 
     @dataclass
     class Config:
-        pos_freqs: int = 10
-        dir_freqs: int = 4
-        depth: int = 8
-        width: int = 256
-        skips: tuple[int, ...] = (4,)
-        samples_coarse: int = 64
-        samples_fine: int = 64
+        pos_freqs: int = bounded(10, 0)
+        dir_freqs: int = bounded(4, 0)
+        depth: int = bounded(8, 1)
+        width: int = bounded(256, 1)
+        skips: tuple[int, ...] = bounded((4,), 0)
+        samples_coarse: int = bounded(64, 2)
+        samples_fine: int = bounded(64, 0)
         perturb: bool = True  # stratified jitter while training
-        density_noise: float = 1.0  # std of the noise added to raw density while training
+        density_noise: float = bounded(1.0, 0.0)  # std of the noise added to raw density while training
         lindisp: bool = False  # sample linearly in inverse depth (bounded scenes only)
         ndc: Literal["auto", "on", "off"] = "auto"  # auto: NDC when the scene is forward-facing
-        lr: float = 5e-4
-        lr_decay: float = 0.1  # nerf-pytorch: 10x decay every 250k steps
-        lr_decay_steps: int = 250_000
-        chunk: int = 4096  # rays per chunk when rendering without gradients
-        train_chunk: int = 1024  # rays per gradient-checkpointed chunk in training (0: one pass)
+        lr: float = bounded(5e-4, 0.0)
+        lr_decay: float = bounded(0.1, above=0.0)  # nerf-pytorch: 10x decay every 250k steps
+        lr_decay_steps: int = bounded(250_000, 0)
+        chunk: int = bounded(4096, 1)  # rays per chunk when rendering without gradients
+        train_chunk: int = bounded(1024, 0)  # rays per gradient-checkpointed chunk in training (0: one pass)
 
     def __init__(self, config: Config, scene: SceneData):
         super().__init__()

@@ -75,8 +75,16 @@ def ssim_map(pred: Tensor, target: Tensor, padding: Literal["valid", "same"] = "
 
 def ssim(pred: Tensor, target: Tensor, padding: Literal["valid", "same"] = "valid",
          reduction: Literal["mean", "none"] = "mean") -> Tensor:
-    """SSIM of (B, 3, H, W) images in [0, 1]: a scalar (``mean``) or one value per image."""
-    values = ssim_map(pred, target, padding)
+    """SSIM of (B, 3, H, W) images in [0, 1]: a scalar (``mean``) or one value per image.
+
+    Images smaller than the 11 x 11 window (``valid``) are measured with the largest odd
+    window that fits them (sigma scaled alike), so tiny images still get a score."""
+    window, sigma = SSIM_WINDOW, SSIM_SIGMA
+    side = min(pred.shape[-2:]) if pred.ndim == 4 else window
+    if padding == "valid" and side < window:
+        window = max(1, side if side % 2 else side - 1)
+        sigma = SSIM_SIGMA * window / SSIM_WINDOW
+    values = ssim_map(pred, target, padding, window=window, sigma=sigma)
     if reduction == "none":
         return values.mean(dim=(1, 2, 3))
     return values.mean()

@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from rainyscape.components import PostProcess
+from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 
 
@@ -39,8 +40,8 @@ class RainMaskFusion(PostProcess):
 
     @dataclass
     class Config:
-        threshold: float = 0.02  # rain level (grey levels in [0, 1]) that counts as rain
-        dilation: int = 1  # grow the mask by this many pixels
+        threshold: float = bounded(0.02, 0.0, 1.0)  # rain level (grey levels in [0, 1]) that counts as rain
+        dilation: int = bounded(1, 0, 64)  # grow the mask by this many pixels
 
     def __init__(self, config: "RainMaskFusion.Config | None" = None):
         super().__init__(config or self.Config())

@@ -19,6 +19,7 @@ from torch import Tensor, nn
 
 from rainyscape.cameras import Cameras, Window
 from rainyscape.components import Callback, Field, ParamGroup, RenderOutput, TrainState
+from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.fields.gaussians.densify import Densifier, DensifySchedule
 from rainyscape.fields.gaussians.ply import write_ply
@@ -64,38 +65,38 @@ class GaussianField(Field):
 
     @dataclass
     class Config:
-        sh_degree: int = 3
-        init_points: int = 100_000  # at most this many of the scene's sparse points (random subset)
-        random_points: int = 20_000  # Gaussians drawn in the scene box when it has no points
-        init_opacity: float = 0.1
-        background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        sh_degree: int = bounded(3, 0, MAX_SH_DEGREE)
+        init_points: int = bounded(100_000, 0)  # at most this many of the scene's sparse points (random subset)
+        random_points: int = bounded(20_000, 0)  # Gaussians drawn in the scene box when it has no points
+        init_opacity: float = bounded(0.1, hi=0.99, above=0.0)
+        background: tuple[float, float, float] = bounded((0.0, 0.0, 0.0), 0.0, 1.0)
         backend: str = "auto"  # auto (gsplat on CUDA when installed) | torch | gsplat
-        eps2d: float = 0.3  # screen-space dilation (pixels^2) of every projected Gaussian
-        near_plane: float = 0.01
+        eps2d: float = bounded(0.3, 0.0)  # screen-space dilation (pixels^2) of every projected Gaussian
+        near_plane: float = bounded(0.01, above=0.0)
         # Learning rates (3DGS); the means' lr is times the scene extent and decays to
         # lr_means_final over the run.
-        lr_means: float = 1.6e-4
-        lr_means_final: float = 1.6e-6
-        lr_scales: float = 5e-3
-        lr_quats: float = 1e-3
-        lr_opacities: float = 5e-2
-        lr_sh0: float = 2.5e-3
-        lr_shN: float = 2.5e-3 / 20
+        lr_means: float = bounded(1.6e-4, 0.0)
+        lr_means_final: float = bounded(1.6e-6, 0.0)
+        lr_scales: float = bounded(5e-3, 0.0)
+        lr_quats: float = bounded(1e-3, 0.0)
+        lr_opacities: float = bounded(5e-2, 0.0)
+        lr_sh0: float = bounded(2.5e-3, 0.0)
+        lr_shN: float = bounded(2.5e-3 / 20, 0.0)
         # Schedule in steps of a reference_iters run, stretched to trainer.max_iters.
-        reference_iters: int = 30_000
-        sh_degree_every: int = 1000
-        refine_start: int = 500
-        refine_stop: int = 15_000
-        refine_every: int = 100
-        min_refine_every: int = 0  # refinements at least this many steps apart, whatever the run
-        reset_every: int = 3000
-        min_reset_every: int = 1000  # opacity resets at least this many steps apart, whatever the run
-        grow_grad2d: float = 2e-4
-        grow_scale3d: float = 0.01
-        prune_opacity: float = 0.005
-        prune_scale3d: float = 0.1
-        max_gaussians: int = 0  # growth stops at this many (0: no limit) ...
-        pixels_per_gaussian: int = 0  # ... or at training pixels / this, if fewer (0: off)
+        reference_iters: int = bounded(30_000, 1)
+        sh_degree_every: int = bounded(1000, 1)
+        refine_start: int = bounded(500, 0)
+        refine_stop: int = bounded(15_000, 0)
+        refine_every: int = bounded(100, 1)
+        min_refine_every: int = bounded(0, 0)  # refinements at least this many steps apart, whatever the run
+        reset_every: int = bounded(3000, 1)
+        min_reset_every: int = bounded(1000, 0)  # opacity resets at least this many steps apart, whatever the run
+        grow_grad2d: float = bounded(2e-4, 0.0)
+        grow_scale3d: float = bounded(0.01, 0.0)
+        prune_opacity: float = bounded(0.005, 0.0, 1.0)
+        prune_scale3d: float = bounded(0.1, 0.0)
+        max_gaussians: int = bounded(0, 0)  # growth stops at this many (0: no limit) ...
+        pixels_per_gaussian: int = bounded(0, 0)  # ... or at training pixels / this, if fewer (0: off)
         seed: int = 0  # initial subset / random Gaussians
 
     def __init__(self, config: "GaussianField.Config | None", scene: SceneData):

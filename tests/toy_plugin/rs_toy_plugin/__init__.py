@@ -7,6 +7,10 @@ touching rainyscape/.
 
 from __future__ import annotations
 
+import io
+import os
+import signal
+import time
 from dataclasses import dataclass
 
 import torch
@@ -26,6 +30,7 @@ class DirectionField(Field):
     class Config:
         hidden: int = 32
         lr: float = 1e-2
+        delay: float = 0.0  # seconds each training render sleeps (fault tests kill a run mid-way)
 
     def __init__(self, config: "DirectionField.Config", scene):
         super().__init__()
@@ -35,6 +40,8 @@ class DirectionField(Field):
                                  nn.Linear(config.hidden, 3))
 
     def render(self, cameras, window) -> RenderOutput:
+        if self.config.delay and torch.is_grad_enabled():
+            time.sleep(self.config.delay)
         rays = window_rays(cameras, window)  # (B, h, w, 3)
         rgb = torch.sigmoid(self.mlp(rays.directions)).permute(0, 3, 1, 2)
         ones = torch.ones_like(rgb[:, :1])
@@ -92,3 +99,26 @@ toy_method = MethodSpec(
     ),
     gpu=["trainer.max_iters=400", "field.hidden=64"],  # its "paper-scale" recipe
 )
+
+
+def _kill_during_checkpoint_write(nth: int) -> None:
+    """Fault tests: the ``nth`` checkpoint write stops half-way with SIGKILL (a power cut)."""
+    real_save = torch.save
+    calls = {"n": 0}
+
+    def save(obj, f, *args, **kwargs):
+        if isinstance(f, (str, os.PathLike)) and str(f).endswith(".pt.tmp"):
+            calls["n"] += 1
+            if calls["n"] == nth:
+                buffer = io.BytesIO()
+                real_save(obj, buffer, *args, **kwargs)
+                with open(f, "wb") as fh:
+                    fh.write(buffer.getvalue()[: len(buffer.getvalue()) // 2])
+                os.kill(os.getpid(), signal.SIGKILL)
+        return real_save(obj, f, *args, **kwargs)
+
+    torch.save = save
+
+
+if os.environ.get("RS_TOY_KILL_IN_SAVE"):
+    _kill_during_checkpoint_write(int(os.environ["RS_TOY_KILL_IN_SAVE"]))

@@ -1,0 +1,116 @@
+"""The exclusive lock of a run folder: one process trains in it at a time.
+
+``RUN_DIR/run.lock`` is locked with ``fcntl.flock`` for as long as a training process works in
+the folder (training, then its evaluation). The kernel releases the lock when the process
+ends, however it ends (kill -9 included), so a lock is never stale. The holder writes its
+pid, host, command and start time into the file; a second process that finds the folder
+locked reads them for its error message.
+
+Where ``fcntl`` does not exist (Windows) runs are not locked.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import sys
+import time
+from pathlib import Path
+
+from rainyscape.errors import RainyScapeError, RunBusyError
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not on Linux / macOS
+    fcntl = None
+
+LOCK_NAME = "run.lock"
+
+
+def holder_info(run_dir: Path) -> dict:
+    """What the lock file says about its holder (empty when unreadable)."""
+    try:
+        data = json.loads((Path(run_dir) / LOCK_NAME).read_text() or "{}")
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def describe_holder(info: dict) -> str:
+    if not info:
+        return "another process"
+    where = f"pid {info.get('pid', '?')}"
+    if info.get("host") and info["host"] != socket.gethostname():
+        where += f" on host {info['host']}"
+    what = info.get("command") or "a process"
+    since = f", since {info['started']}" if info.get("started") else ""
+    return f"{what} ({where}{since})"
+
+
+class RunLock:
+    """``with RunLock(run_dir, "rs-train"):`` holds the folder's lock (RunBusyError if taken)."""
+
+    def __init__(self, run_dir: Path, command: str = ""):
+        self.run_dir = Path(run_dir)
+        self.path = self.run_dir / LOCK_NAME
+        self.command = command or Path(sys.argv[0]).name or "python"
+        self.fd: int | None = None
+
+    def acquire(self) -> "RunLock":
+        if fcntl is None or self.fd is not None:
+            return self
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise RainyScapeError(f"{self.run_dir}: cannot open the run's lock file "
+                                  f"({exc.strerror or exc})") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            info = holder_info(self.run_dir)
+            raise RunBusyError(
+                f"{self.run_dir}: in use by {describe_holder(info)}; wait until it ends"
+                + (f" or stop it (kill {info['pid']})" if info.get("pid") and
+                   info.get("host", socket.gethostname()) == socket.gethostname() else "")) from None
+        info = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
+                "started": time.strftime("%Y-%m-%d %H:%M:%S")}
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, (json.dumps(info) + "\n").encode(), 0)
+        self.fd = fd
+        return self
+
+    def release(self) -> None:
+        if self.fd is None:
+            return
+        fd, self.fd = self.fd, None
+        try:
+            os.ftruncate(fd, 0)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+        finally:
+            os.close(fd)
+
+    def __enter__(self) -> "RunLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def is_locked(run_dir: Path) -> bool:
+    """Whether some process (this one included) holds the folder's lock."""
+    path = Path(run_dir) / LOCK_NAME
+    if fcntl is None or not path.is_file():
+        return False
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    finally:
+        os.close(fd)  # closing releases a lock we took
+    return False

@@ -1,0 +1,515 @@
+"""Faults and bad input (docs/reliability.md): what a kill, a corrupt file, a second process or
+a wrong value does, and that nothing of the user's is lost.
+
+- checkpoints: a crafted one is refused unread; a truncated newest one falls back to the
+  previous one; a kill -9 during training or during a checkpoint write, then resume, ends
+  with the same parameters as an uninterrupted run;
+- run folders: a second rs-train resume= of a folder in use is refused naming the holder;
+  a dead owner's "running" status reads as interrupted;
+- destructive paths: sentinel files of the user's survive byte for byte;
+- a table of bad inputs, each one error line (exit code 2) naming the file or key, no traceback;
+  and inputs that must simply work (8 x 8 images, whole-image batches, a single view, ...).
+
+Most cases run the commands in this process (``run_cli``) with the toy plugin's field, which
+trains in a fraction of a second; only the kills need real processes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from _plugins import install_toy_plugin
+from rainyscape import config, registry
+from rainyscape.cli import run_cli
+from rainyscape.engine.checkpoint import list_checkpoints, load_checkpoint
+from rainyscape.engine.run import load_run, read_status
+from rainyscape.errors import RainyScapeError
+from rainyscape.workflow import train_and_evaluate
+
+ITERS = 30  # toy runs: checkpoints every 10 steps
+
+
+# ----------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="module")
+def toy_env(tmp_path_factory):
+    """The toy plugin installed for this process and for subprocesses (env). One torch thread:
+    the toy's tiny steps run ten times faster so on a shared, busy CPU."""
+    path = install_toy_plugin(tmp_path_factory.mktemp("plugin"))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.syspath_prepend(str(path))
+        mp.delenv("RAINYSCAPE_PLUGINS", raising=False)
+        registry.clear_cache()
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(path), os.environ.get("PYTHONPATH", "")]),
+               "OMP_NUM_THREADS": "1"}
+        env.pop("RS_TOY_KILL_IN_SAVE", None)
+        yield env
+    torch.set_num_threads(threads)
+    registry.clear_cache()
+
+
+@pytest.fixture(autouse=True)
+def _keep_sigterm():
+    """rs-train's main turns SIGTERM into Ctrl-C; put pytest's handler back after each test."""
+    handler = signal.getsignal(signal.SIGTERM)
+    yield
+    signal.signal(signal.SIGTERM, handler)
+
+
+def _toy_args(scene: Path, out: Path, *extra: str) -> list[str]:
+    return [f"data={scene}", f"trainer.output_dir={out}", "trainer.device=cpu", "trainer.progress=false",
+            f"trainer.max_iters={ITERS}", "trainer.checkpoint_every=10", "trainer.keep_checkpoints=0",
+            "trainer.log_every=1", "trainer.eval_every=0", "phases.warmup.patches=2",
+            "phases.warmup.patch_size=8", *extra]
+
+
+def _train(scene: Path, out: Path, *extra: str, run_dir: Path | None = None) -> Path:
+    if run_dir is not None:
+        cfg = config.load_yaml(run_dir / "config.yml")
+        cfg = config.apply_overrides(cfg, config.parse_overrides(list(extra)))
+        return train_and_evaluate(cfg, run_dir).run_dir
+    return train_and_evaluate(config.method_config("toy", _toy_args(scene, out, *extra))).run_dir
+
+
+def _params(run: Path) -> dict[str, torch.Tensor]:
+    pipeline, step = load_run(run, device="cpu")
+    assert step == ITERS
+    return {k: v.clone() for k, v in pipeline.field.state_dict().items()}
+
+
+def _same_params(a: Path, b: Path) -> None:
+    pa, pb = _params(a), _params(b)
+    assert pa.keys() == pb.keys()
+    for key in pa:
+        assert torch.equal(pa[key], pb[key]), key  # CPU, same seed: bit for bit
+
+
+def _logged_steps(run: Path) -> list[int]:
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    return [r["step"] for r in records if "loss" in r]
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def reference_run(toy_env, tiny_scene_dir, tmp_path_factory):
+    """An uninterrupted toy run of ITERS steps (checkpoints at 10, 20, 30)."""
+    return _train(tiny_scene_dir, tmp_path_factory.mktemp("reference"))
+
+
+def _cli(capsys, command: str, *argv: str) -> tuple[int, str]:
+    """Run ``command`` (train, eval, render, export) in this process: exit code and stderr."""
+    from importlib import import_module
+
+    main = import_module(f"rainyscape.cli.{command}").main
+    capsys.readouterr()
+    code = run_cli(main, [str(a) for a in argv])
+    return code, capsys.readouterr().err
+
+
+def _one_error_line(err: str) -> str:
+    assert "Traceback" not in err, err
+    errors = [line for line in err.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and err.rstrip().endswith(errors[0]), err
+    return errors[0]
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+
+class _Payload:
+    """Unpickling this runs a shell command (what a crafted checkpoint would do)."""
+
+    def __init__(self, sentinel: Path):
+        self.sentinel = sentinel
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.sentinel}",))
+
+
+def test_a_crafted_checkpoint_is_refused_without_running_its_code(reference_run, tmp_path, capsys):
+    run = tmp_path / "run"
+    shutil.copytree(reference_run, run)
+    sentinel = tmp_path / "pwned"
+    crafted = run / "checkpoints" / "step-0000030.pt"
+    torch.save({"step": 30, "models": {"field": _Payload(sentinel)}, "optimizers": {}, "rng": {}}, crafted)
+    with pytest.raises(RainyScapeError, match="refused unread"):
+        load_checkpoint(crafted, "cpu")
+    code, err = _cli(capsys, "eval", run, "step=30", "device=cpu")
+    assert code == 2 and str(crafted) in _one_error_line(err)
+    # the newest checkpoint is the crafted one: rs-eval warns and uses the previous one
+    code, err = _cli(capsys, "eval", run, "device=cpu")
+    assert code == 0 and "step-0000030.pt" in err and "using step-0000020.pt" in err
+    assert json.loads((run / "metrics.json").read_text())["step"] == 20
+    assert not sentinel.exists()
+
+
+def test_a_truncated_newest_checkpoint_falls_back_and_resume_matches(reference_run, tiny_scene_dir,
+                                                                      tmp_path, capsys):
+    run = _train(tiny_scene_dir, tmp_path, "trainer.stop_at=20")
+    assert read_status(run)["state"] == "stopped"
+    newest = run / "checkpoints" / "step-0000020.pt"
+    data = newest.read_bytes()
+    newest.write_bytes(data[: len(data) // 3])
+    code, err = _cli(capsys, "train", f"resume={run}", "trainer.stop_at=0")
+    assert code == 0, err
+    assert "step-0000020.pt" in err and "using step-0000010.pt" in err and "Traceback" not in err
+    # set aside for inspection, not deleted
+    assert (run / "checkpoints" / "step-0000020.pt.corrupt").read_bytes() == data[: len(data) // 3]
+    assert _logged_steps(run) == list(range(1, ITERS + 1))  # the log was cut back to step 10
+    assert read_status(run)["state"] == "finished"
+    _same_params(reference_run, run)
+
+
+def _start_toy_training(scene: Path, out: Path, env: dict, *extra: str) -> subprocess.Popen:
+    args = [sys.executable, "-m", "rainyscape.cli.train", "method=toy", *_toy_args(scene, out, *extra)]
+    return subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for(predicate, proc: subprocess.Popen, timeout: float = 120.0) -> None:
+    end = time.monotonic() + timeout
+    while not predicate():
+        if proc.poll() is not None:
+            raise AssertionError(f"the process ended first (exit {proc.returncode}): {proc.stderr.read()}")
+        if time.monotonic() > end:
+            proc.kill()
+            raise AssertionError("timed out")
+        time.sleep(0.02)
+
+
+def _only_run(out: Path) -> Path:
+    runs = [p.parent for p in out.rglob("config.yml")]
+    assert len(runs) == 1, runs
+    return runs[0]
+
+
+@pytest.mark.parametrize("when", ["training", "checkpoint-write"])
+def test_kill_9_then_resume_matches_an_uninterrupted_run(when, reference_run, toy_env, tiny_scene_dir,
+                                                          tmp_path, capsys):
+    env = dict(toy_env)
+    if when == "checkpoint-write":
+        env["RS_TOY_KILL_IN_SAVE"] = "2"  # the step-20 checkpoint is half-written, then SIGKILL
+        proc = _start_toy_training(tiny_scene_dir, tmp_path, env)
+        proc.wait(timeout=300)
+        run = _only_run(tmp_path)
+        assert (run / "checkpoints" / "step-0000020.pt.tmp").is_file()
+    else:
+        proc = _start_toy_training(tiny_scene_dir, tmp_path, env, "field.delay=0.05")
+
+        def far_enough() -> bool:
+            runs = [p.parent for p in tmp_path.rglob("log.jsonl")]
+            return bool(runs) and any(s >= 23 for s in _logged_steps_safe(runs[0]))
+
+        _wait_for(far_enough, proc)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=60)
+        run = _only_run(tmp_path)
+    assert proc.returncode == -signal.SIGKILL
+    assert [p.name for p in list_checkpoints(run / "checkpoints")][-1] in ("step-0000010.pt", "step-0000020.pt")
+    # the killed process left "running"; nobody holds the folder, so it reads as interrupted
+    status = read_status(run)
+    assert status["state"] == "interrupted" and str(proc.pid) in status["note"]
+    code, err = _cli(capsys, "train", f"resume={run}")
+    assert code == 0, err
+    assert not list((run / "checkpoints").glob("*.tmp"))
+    assert _logged_steps(run) == list(range(1, ITERS + 1))  # no step logged twice
+    assert read_status(run)["state"] == "finished"
+    _same_params(reference_run, run)
+
+
+def _logged_steps_safe(run: Path) -> list[int]:
+    try:
+        return [json.loads(line).get("step", 0) for line in (run / "log.jsonl").read_text().splitlines()
+                if line.endswith("}")]
+    except (OSError, ValueError):
+        return []
+
+
+def test_a_second_resume_of_a_busy_run_is_refused_naming_the_holder(toy_env, tiny_scene_dir, tmp_path,
+                                                                     capsys):
+    run = _train(tiny_scene_dir, tmp_path, "trainer.stop_at=10", "field.delay=0.04")
+    args = [sys.executable, "-m", "rainyscape.cli.train", f"resume={run}", "trainer.stop_at=0"]
+    first = subprocess.Popen(args, env=toy_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def holds() -> bool:  # the first resume has the folder once its status names it
+        try:
+            status = json.loads((run / "status.json").read_text())
+        except (OSError, ValueError):
+            return False
+        return status.get("state") == "running" and status.get("pid") == first.pid
+
+    _wait_for(holds, first)
+    code, err = _cli(capsys, "train", f"resume={run}")
+    line = _one_error_line(err)
+    assert code == 2 and "in use by rs-train" in line and f"pid {first.pid}" in line
+    assert first.wait(timeout=300) == 0, first.stderr.read()
+    assert _logged_steps(run) == list(range(1, ITERS + 1))  # every step once
+    assert read_status(run)["state"] == "finished"
+    # a finished run is not re-evaluated silently
+    metrics = (run / "metrics.json").read_bytes()
+    code, err = _cli(capsys, "train", f"resume={run}")
+    assert code == 2 and "force=true" in _one_error_line(err)
+    assert (run / "metrics.json").read_bytes() == metrics
+
+
+# ------------------------------------------------------------------- user files survive
+
+
+def test_user_files_survive_every_writing_command(reference_run, toy_env, tiny_scene_dir, tmp_path, capsys):
+    user = tmp_path / "mine"
+    (user / "scene" / "toy").mkdir(parents=True)  # named like the run folder's parents
+    (user / "notes.txt").write_text("my notes\n")
+    (user / "scene" / "toy" / "README").write_text("not a run\n")
+    (user / "transforms.json").write_text('{"mine": true}\n')
+    (user / "images").mkdir()
+    (user / "images" / "0001.png").write_bytes(b"\x89PNG not really")
+    before = _snapshot(user)
+    # rs-train into a folder holding the user's files: a new run folder, nothing else touched
+    code, err = _cli(capsys, "train", "method=toy", *_toy_args(tiny_scene_dir, user, "trainer.max_iters=5"))
+    assert code == 0, err
+    run = _only_run(user)
+    assert {k: v for k, v in _snapshot(user).items() if k in before} == before
+    # files the user put in a run folder survive rs-eval and a resume
+    (run / "my_notes.txt").write_text("keep\n")
+    (run / "checkpoints" / "mine.pt.tmp").write_text("keep\n")
+    in_run = {k: v for k, v in _snapshot(run).items() if k in ("my_notes.txt", "checkpoints/mine.pt.tmp")}
+    assert _cli(capsys, "eval", run, "device=cpu")[0] == 0
+    code, err = _cli(capsys, "train", f"resume={run}", "trainer.max_iters=8")
+    assert code == 0, err
+    assert {k: v for k, v in _snapshot(run).items() if k in in_run} == in_run
+    # rs-export refuses the user's non-empty folder, and with force=true keeps what it does not write
+    code, err = _cli(capsys, "export", run, f"out={user}", "what=cameras", "device=cpu")
+    assert code == 2 and str(user) in _one_error_line(err)
+    assert {k: v for k, v in _snapshot(user).items() if k in before} == before
+    code, err = _cli(capsys, "export", run, f"out={user}", "what=cameras", "device=cpu", "force=true")
+    assert code == 0, err
+    kept = {k: v for k, v in before.items() if k not in ("transforms.json",)}
+    assert {k: v for k, v in _snapshot(user).items() if k in kept} == kept
+
+
+# ------------------------------------------------------------------------- bad input table
+
+
+@pytest.fixture(scope="module")
+def tj_scene(tiny_scene_dir, tmp_path_factory):
+    """The tiny scene as a transforms.json scene (images_rain/NNN.png, images_wo_rain/)."""
+    from rainyscape.dataparsers.maya_csv import MayaCsvConfig, MayaCsvParser
+    from rainyscape.dataparsers.writers import write_transforms_json
+
+    scene = MayaCsvParser(MayaCsvConfig()).parse(tiny_scene_dir)
+    return write_transforms_json(scene, tmp_path_factory.mktemp("tj") / "scene")
+
+
+def _tj_variant(tj_scene: Path, dest: Path, change) -> Path:
+    shutil.copytree(tj_scene, dest)
+    meta = json.loads((dest / "transforms.json").read_text())
+    change(meta)
+    (dest / "transforms.json").write_text(json.dumps(meta))
+    return dest
+
+
+def _set(key, value):
+    return lambda meta: meta.update({key: value})
+
+
+def _frame(i, key, value):
+    return lambda meta: meta["frames"][i].update({key: value})
+
+
+def _angle_zero(meta):
+    for f in meta["frames"]:
+        for k in ("fl_x", "fl_y"):
+            f.pop(k)
+    meta["camera_angle_x"] = 0
+
+
+def _scaled_rotation(meta):
+    m = np.array(meta["frames"][1]["transform_matrix"])
+    m[:3, :3] *= 2
+    meta["frames"][1]["transform_matrix"] = m.tolist()
+
+
+def _truncated_depth(tiny_scene_dir: Path, dest: Path) -> Path:
+    shutil.copytree(tiny_scene_dir, dest)
+    mat = dest / "depth" / "003.mat"
+    mat.write_bytes(mat.read_bytes()[:100])
+    return dest
+
+
+def _run_copy(reference_run: Path, dest: Path, change=None) -> Path:
+    shutil.copytree(reference_run, dest)
+    if change is not None:
+        change(dest)
+    return dest
+
+
+def _drop_rng(run: Path) -> None:
+    path = run / "checkpoints" / "step-0000030.pt"
+    state = torch.load(path, weights_only=True)
+    del state["rng"]
+    torch.save(state, path)
+
+
+def _drop_weights(run: Path) -> None:
+    path = run / "checkpoints" / "step-0000030.pt"
+    state = torch.load(path, weights_only=True)
+    state["models"]["field"].pop(next(iter(state["models"]["field"])))
+    torch.save(state, path)
+
+
+def _moved_scene(run: Path) -> None:
+    text = (run / "config.yml").read_text()
+    data = next(line for line in text.splitlines() if line.startswith("data:"))
+    (run / "config.yml").write_text(text.replace(data, "data: /nonexistent/moved_scene"))
+
+
+# id: (command, argv from the fixtures' paths, what the one error line must name)
+BAD_INPUTS = {
+    "holdout_every=1": ("train", lambda c: ["method=toy", *c.toy("dataparser.holdout_every=1")],
+                        "dataparser.holdout_every=1"),
+    "device=gpu": ("train", lambda c: ["method=toy", *c.toy("trainer.device=gpu")], "trainer.device=gpu"),
+    "downscale=100": ("train", lambda c: ["method=toy", *c.toy("dataparser.downscale=100")],
+                      "dataparser.downscale=100"),
+    "downscale=0": ("train", lambda c: ["method=toy", *c.toy("dataparser.downscale=0")], "dataparser.downscale"),
+    "log_every=0": ("train", lambda c: ["method=toy", *c.toy("trainer.log_every=0")], "trainer.log_every"),
+    "max_iters=0": ("train", lambda c: ["method=toy", *c.toy("trainer.max_iters=0")], "trainer.max_iters"),
+    "max_iters=-5": ("train", lambda c: ["method=toy", *c.toy("trainer.max_iters=-5")], "trainer.max_iters"),
+    "patch_size<0": ("train", lambda c: ["method=toy", *c.toy("phases.warmup.patch_size=-1")],
+                     "phases.warmup.patch_size"),
+    "checkpoint_minutes<0": ("train", lambda c: ["method=toy", *c.toy("trainer.checkpoint_minutes=-1")],
+                             "trainer.checkpoint_minutes"),
+    "field range": ("train", lambda c: ["method=nerf", "field.step_ratio=0"], "field.step_ratio"),
+    "auto without data": ("train", lambda c: ["method=nerf", "dataparser.clean=x"], "data="),
+    "holdout_file missing": ("train", lambda c: ["method=toy", *c.toy("dataparser.holdout_file=nope.txt")],
+                             "nope.txt"),
+    "holdout_file unknown name": ("train", lambda c: ["method=toy", *c.toy(f"dataparser.holdout_file={c.held}")],
+                                  "099.png"),
+    "camera_angle_x: 0": ("train", lambda c: ["method=toy", *c.toy(data=c.tj("angle", _angle_zero))],
+                          "camera_angle_x"),
+    "zero transform_matrix": ("train", lambda c: ["method=toy", *c.toy(data=c.tj(
+        "zero", _frame(2, "transform_matrix", [[0] * 4] * 3 + [[0, 0, 0, 1]])))], "transform_matrix"),
+    "non-rotation transform_matrix": ("train", lambda c: ["method=toy", *c.toy(data=c.tj("scaled", _scaled_rotation))],
+                                      "transform_matrix"),
+    "k1=50": ("train", lambda c: ["method=toy", *c.toy(data=c.tj("k1", _set("k1", 50)))], "k1=50"),
+    "val_filenames unknown": ("train", lambda c: ["method=toy", *c.toy(data=c.tj(
+        "split", _set("val_filenames", ["images_rain/777.png"])))], "777.png"),
+    "truncated depth .mat": ("train", lambda c: ["method=toy", *c.toy(data=c.depth())], "003.mat"),
+    "resume not a run": ("train", lambda c: ["resume=/nonexistent/run"], "/nonexistent/run"),
+    "resume other keys": ("train", lambda c: [f"resume={c.run()}", "field.hidden=3"], "field.hidden"),
+    "checkpoint without rng": ("eval", lambda c: [c.run(_drop_rng), "step=30", "device=cpu"], "rng"),
+    "checkpoint missing a weight": ("eval", lambda c: [c.run(_drop_weights), "step=30", "device=cpu"],
+                                    "does not fit"),
+    "checkpoint step absent": ("eval", lambda c: [c.run(), "step=7", "device=cpu"], "step 7"),
+    "eval step<0": ("eval", lambda c: [c.run(), "step=-1"], "step"),
+    "scene moved (eval)": ("eval", lambda c: [c.run(_moved_scene), "device=cpu"], "data="),
+    "scene moved (render)": ("render", lambda c: [c.run(_moved_scene), "device=cpu"], "data="),
+    "scene moved (export)": ("export", lambda c: [c.run(_moved_scene), "device=cpu"], "data="),
+    "render frames=0": ("render", lambda c: [c.run(), "frames=0"], "frames"),
+    "export resolution=4": ("export", lambda c: [c.run(), "resolution=4"], "resolution"),
+}
+
+
+class _Paths:
+    """Builds each case's inputs under its own temporary folder."""
+
+    def __init__(self, tmp: Path, scene: Path, tj_scene: Path, reference_run: Path):
+        self.tmp, self.scene, self.tj_scene, self.reference_run = tmp, scene, tj_scene, reference_run
+        self.held = tmp / "held.txt"
+        self.held.write_text("images_rain/003.png\n099.png\n")
+
+    def toy(self, *extra: str, data: Path | None = None) -> list[str]:
+        return _toy_args(data or self.scene, self.tmp / "outputs", "trainer.max_iters=3", *extra)
+
+    def tj(self, name: str, change) -> Path:
+        return _tj_variant(self.tj_scene, self.tmp / name, change)
+
+    def depth(self) -> Path:
+        return _truncated_depth(self.scene, self.tmp / "depth_scene")
+
+    def run(self, change=None) -> Path:
+        return _run_copy(self.reference_run, self.tmp / "run", change)
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_input_is_one_error_line_naming_it(case, toy_env, tiny_scene_dir, tj_scene, reference_run,
+                                               tmp_path, capsys):
+    command, argv, names = BAD_INPUTS[case]
+    code, err = _cli(capsys, command, *argv(_Paths(tmp_path, tiny_scene_dir, tj_scene, reference_run)))
+    line = _one_error_line(err)
+    assert code == 2, err
+    assert names in line, line
+    assert not list((tmp_path / "outputs").rglob("config.yml"))  # input errors come before a run folder
+
+
+# ------------------------------------------------------------------------ inputs that work
+
+
+def test_awkward_but_valid_inputs_train_and_evaluate(toy_env, tiny_scene_dir, tj_scene, tmp_path, capsys):
+    out = tmp_path / "outputs"
+    # 8 x 8 images (SSIM measures them with a window that fits), in rs-train and in rs-eval
+    code, err = _cli(capsys, "train", "method=toy",
+                     *_toy_args(tiny_scene_dir, out / "small", "trainer.max_iters=3", "dataparser.downscale=6"))
+    assert code == 0, err
+    small = _only_run(out / "small")
+    assert json.loads((small / "metrics.json").read_text())["views"]["width"] == 8
+    assert _cli(capsys, "eval", small, "device=cpu")[0] == 0
+    # whole images (patch_size=0) with a ray-sized batch: capped, with a word
+    code, err = _cli(capsys, "train", "method=toy",
+                     *_toy_args(tiny_scene_dir, out / "whole", "trainer.max_iters=2",
+                                "phases.warmup.patch_size=0", "phases.warmup.patches=1024"))
+    assert code == 0 and "a step takes 1" in err, err
+    # dataparser=auto with the detected format's option; a held-out list written as
+    # transforms.json writes paths, relative to the scene; a single-view scene warns
+    held = tj_scene / "held.txt"
+    held.write_text("images_rain/004.png\n./images_rain/008.png\n012\n")
+    code, err = _cli(capsys, "train", "method=toy",
+                     *_toy_args(tj_scene, out / "auto", "trainer.max_iters=2", "dataparser.clean=images_wo_rain",
+                                "dataparser.holdout_file=held.txt"))
+    assert code == 0, err
+    run = _only_run(out / "auto")
+    cfg = config.load_yaml(run / "config.yml")
+    assert cfg.dataparser.name == "transforms-json" and cfg.dataparser.options.clean == "images_wo_rain"
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["views"]["heldout"] == 3 and metrics["has_clean"]
+    single = _tj_variant(tj_scene, tmp_path / "single", lambda m: m.update(frames=m["frames"][:1]))
+    code, err = _cli(capsys, "train", "method=toy", *_toy_args(single, out / "single", "trainer.max_iters=2"))
+    assert code == 0 and "single view" in err, err
+
+
+def test_nerfstudio_split_lists_give_the_held_out_views(tj_scene, tmp_path):
+    from rainyscape.dataparsers.transforms_json import TransformsJsonConfig, TransformsJsonParser
+
+    def split(change) -> list[int]:
+        folder = _tj_variant(tj_scene, tmp_path / f"s{len(list(tmp_path.iterdir()))}", change)
+        return TransformsJsonParser(TransformsJsonConfig()).parse(folder).eval_indices
+
+    def lists(meta):
+        paths = [f["file_path"] for f in meta["frames"]]
+        meta.update(train_filenames=paths[:9], val_filenames=paths[9:11], test_filenames=["./" + paths[11]])
+
+    assert split(lists) == [9, 10, 11]
+    assert split(lambda m: m.update(train_filenames=[f["file_path"] for f in m["frames"][:10]])) == [10, 11]
+
+
+def test_the_end_of_run_evaluation_is_bounded_and_says_which_views(reference_run):
+    metrics = json.loads((reference_run / "metrics.json").read_text())
+    done = metrics["evaluated"]
+    assert 1 <= len(done["views"]) <= 8 and not done["all"]
+    assert done["train"] >= 1 and done["heldout"] >= 1  # both splits, spread evenly
+    assert len(metrics["per_view"]) == len(done["views"])
