@@ -3,6 +3,7 @@
     python benchmarks/fields.py speed [--grid-steps 300] [--mlp-steps 3]
     python benchmarks/fields.py quality --method nerf --minutes 5 [--iters N]
     python benchmarks/fields.py quality --method vanilla-nerf --minutes 5 15
+    python benchmarks/fields.py ceiling --method 3dgs --data DIR --tag TAG [key=value ...]
 
 Both run on the simulator's demo scene trained on its CLEAN images (the ceiling the rain
 work aims at), or on --data DIR (a maya-csv scene with an images_wo_rain folder).
@@ -11,6 +12,12 @@ speed: one process, the paper's batch (4096 random rays per step) for both field
 with 64 + 64 samples (the vanilla-nerf config), and the grid field (the nerf config) over a
 whole schedule of --grid-steps (it gets cheaper per step as empty space is carved and dearer
 as it grows), reporting its mean and final-resolution step time and the ratio.
+
+ceiling: trains any METHOD (nerf, 3dgs, ...) for its whole schedule on the CLEAN images of
+--data and reports training wall time (evaluation excluded), steps per second, the field's
+stats (Gaussian count, densification events, grid resolution) every --stats-every steps,
+and PSNR / SSIM of all training and held-out views against the clean images; one JSON line
+per run is appended to --out/ceiling.jsonl.
 
 quality: trains METHOD until each of the --minutes marks of training wall time (evaluation
 time excluded), evaluating held-out views (PSNR, SSIM vs clean) at each mark. --iters sets
@@ -54,6 +61,52 @@ def timed_steps(trainer, count: int) -> list[float]:
         trainer.train_step()
         times.append(time.perf_counter() - t0)
     return times
+
+
+@torch.no_grad()
+def view_metrics(trainer, indices) -> tuple[float, float]:
+    """Mean PSNR / SSIM of the renders of ``indices`` against the clean images (the images
+    themselves when the scene was read from its clean folder)."""
+    from rainyscape.eval.views import render_view
+    from rainyscape.imaging.metrics import psnr, ssim
+
+    scene, psnrs, ssims = trainer.scene, [], []
+    reference = scene.clean_images if scene.clean_images is not None else scene.images
+    for i in indices:
+        rgb = render_view(trainer.p, i).rgb.clamp(0, 1)
+        clean = reference[i].to(trainer.device).permute(2, 0, 1)[None].float() / 255
+        psnrs.append(float(psnr(rgb, clean)))
+        ssims.append(float(ssim(rgb, clean)))
+    return sum(psnrs) / len(psnrs), sum(ssims) / len(ssims)
+
+
+def ceiling(args) -> dict:
+    overrides = clean_demo_overrides(args.data) + [
+        "trainer.progress=false", "trainer.eval_every=0", "trainer.checkpoint_every=0",
+        *args.overrides]
+    cfg, trainer = build(args.method, overrides, Path(args.out) / f"ceiling-{args.tag}")
+    trained, trace = 0.0, []
+    while trainer.step < cfg.trainer.max_iters:
+        t0 = time.perf_counter()
+        trainer.train_step()
+        trained += time.perf_counter() - t0
+        if trainer.step % args.stats_every == 0 or trainer.step == cfg.trainer.max_iters:
+            trace.append({"step": trainer.step, "seconds": round(trained, 1), **trainer.p.field.stats()})
+    scene = trainer.scene
+    train_psnr, train_ssim = view_metrics(trainer, scene.train_indices)
+    held_psnr, held_ssim = view_metrics(trainer, scene.eval_indices) if scene.eval_indices else (None, None)
+    result = {"tag": args.tag, "method": args.method, "overrides": list(args.overrides),
+              "steps": trainer.step, "train_seconds": round(trained, 1),
+              "steps_per_s": round(trainer.step / trained, 2), "threads": torch.get_num_threads(),
+              "train_psnr": round(train_psnr, 2), "train_ssim": round(train_ssim, 4),
+              "heldout_psnr": held_psnr and round(held_psnr, 2),
+              "heldout_ssim": held_ssim and round(held_ssim, 4),
+              "final_stats": trace[-1], "trace": trace}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "ceiling.jsonl", "a") as fh:
+        fh.write(json.dumps(result) + "\n")
+    return result
 
 
 @torch.no_grad()
@@ -128,10 +181,19 @@ def main(argv: list[str]) -> int:
     q.add_argument("--minutes", type=float, nargs="+", default=[5.0])
     q.add_argument("--iters", type=int, default=0, help="schedule length (0: the method's)")
     q.add_argument("overrides", nargs="*", help="extra key=value config overrides")
-    for p in (sp, q):
+    c = sub.add_parser("ceiling")
+    c.add_argument("--method", default="3dgs")
+    c.add_argument("--tag", default="run")
+    c.add_argument("--stats-every", type=int, default=100)
+    c.add_argument("overrides", nargs="*", help="extra key=value config overrides")
+    for p in (sp, q, c):
         p.add_argument("--data", default="", help="maya-csv scene with images_wo_rain (default: demo)")
         p.add_argument("--out", default="outputs/benchmarks/fields")
     args = parser.parse_args(argv)
+    if args.mode == "ceiling":
+        result = ceiling(args)
+        print(json.dumps({k: v for k, v in result.items() if k != "trace"}), flush=True)
+        return 0
     result = speed(args) if args.mode == "speed" else quality(args)
     print(json.dumps(result, indent=2))
     out = Path(args.out)

@@ -106,6 +106,11 @@ class Field(nn.Module):
         """Field-internal losses given what ``output.rgb`` should match (e.g. a coarse network)."""
         return {}
 
+    def stats(self) -> dict[str, float]:
+        """Numbers describing the field's current state (its size, resolution, cumulative counts
+        of structural changes) that the trainer logs with each record as ``stats.field.KEY``."""
+        return {}
+
 
 class ImageHead(nn.Module):
     """Predicts an additive image layer for (view, window): the observed image is the field's

@@ -5,6 +5,7 @@ and a short fit on the tiny scene."""
 from __future__ import annotations
 
 import copy
+import json
 import math
 from dataclasses import replace
 
@@ -15,6 +16,7 @@ from rainyscape.cameras import Window
 from rainyscape.components import LossContext, RenderOutput, TrainState
 from rainyscape.config import method_config
 from rainyscape.engine.pipeline import build_pipeline, compute_losses
+from rainyscape.errors import ConfigError
 from rainyscape.fields.gaussians.densify import DensifySchedule, replace_params
 from rainyscape.fields.gaussians.field import GaussianField, growth_cap
 from rainyscape.fields.gaussians.ply import read_ply
@@ -56,12 +58,22 @@ def test_initialises_from_scene_points(tiny_scene):
         assert torch.allclose(p["scales"][i].exp().double(), d.pow(2).mean().sqrt(), rtol=1e-4)
 
 
-def test_random_initialisation_in_scene_box(tiny_scene):
+def test_random_initialisation_in_scene_box_or_gsplat_cube(tiny_scene):
     scene = replace(tiny_scene, points=None, point_colors=None)
-    field = make_field(scene, random_points=500)
+    field = make_field(scene, random_points=500, random_extent=0.0)
     m = field.params["means"].detach()
     assert len(m) == 500
     assert (m >= scene.scene_box[0]).all() and (m <= scene.scene_box[1]).all()
+    # gsplat's: a cube of 3 x the scene extent about the training cameras' centroid
+    field = make_field(scene, random_points=2000)
+    m = field.params["means"].detach()
+    centre = scene.cameras[scene.train_indices].centers.float().mean(0)
+    offset = (m - centre).abs()
+    assert offset.max() <= 3 * field.extent + 1e-4 and offset.max() > 2.8 * field.extent
+    # init=random ignores the scene's points; init=points needs them
+    assert make_field(tiny_scene, init="random", random_points=300).num_gaussians == 300
+    with pytest.raises(ConfigError, match="no sparse points"):
+        make_field(scene, init="points")
 
 
 def test_sh_degree_zero_is_view_independent_and_matches_basis():
@@ -114,6 +126,32 @@ def test_schedule_scales_with_run_length():
     assert DensifySchedule.scaled(3000, 30_000, 500, 15_000, 100, 3000, 1000, 1000).reset_every == 1000
     # and so do refinements: new Gaussians settle before they are judged again
     assert DensifySchedule.scaled(3000, 30_000, 500, 15_000, 100, 3000, 1000, 1000, 100).every == 100
+    # the first refinement and the SH degree steps have floors of their own
+    s = DensifySchedule.scaled(1500, 30_000, 500, 15_000, 100, 3000, 1000, min_start=200, min_sh_every=250)
+    assert (s.start, s.sh_every, s.stop) == (200, 250, 750)
+
+
+def test_schedule_shape_long_run_is_the_papers():
+    """At the paper's 30k steps: SH degree +1 every 1000, refinements every 100 after step 500
+    and before 15k, opacity resets at 3k, 6k, 9k, 12k (each followed by 3k of densification)."""
+    s = DensifySchedule.scaled(30_000, 30_000, 500, 15_000, 100, 3000, 1000, 1000, 0, 0, 0)
+    assert s.resets() == [3000, 6000, 9000, 12_000]
+    refines = [it for it in range(1, 30_001) if s.refines_at(it)]
+    assert refines[0] == 600 and refines[-1] == 14_900 and len(refines) == 144
+    assert [s.sh_degree_at(step, 3) for step in (0, 998, 999, 1999, 2999, 29_999)] == [0, 0, 1, 2, 3, 3]
+
+
+def test_schedule_shape_short_runs_leave_time_to_recover():
+    """Short runs: resets only where a whole reset interval of densification follows."""
+    four_k = DensifySchedule.scaled(4000, 30_000, 500, 15_000, 100, 3000, 1000, 1000)
+    assert four_k.stop == 2000 and four_k.resets() == [1000]
+    assert DensifySchedule.scaled(3000, 30_000, 500, 15_000, 100, 3000, 1000, 1000).resets() == []
+    assert DensifySchedule.scaled(1500, 30_000, 500, 15_000, 100, 3000, 1000, 1000, 100).resets() == []
+    short = DensifySchedule.scaled(1500, 30_000, 500, 15_000, 100, 3000, 1000, 250, 100)
+    assert short.resets() == [250, 500]  # each followed by at least 250 steps of densification
+    assert all(r + short.reset_every <= short.stop for r in short.resets())
+    # no refinement, statistic or reset at or after the stop
+    assert not any(short.refines_at(it) or short.resets_at(it) for it in range(short.stop, 1501))
 
 
 def test_growth_cap_is_the_smaller_of_the_absolute_and_per_pixel_caps():
@@ -308,14 +346,16 @@ def _quiet_pipeline(method: str, scene, overrides: list[str]):
 def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):
     """A few hundred steps of 3dgs on the 48 px tiny scene beat the initial render on the
     held-out view (clean image) by a margin measured on this scene: 12.96 -> 20.23-20.36 dB
-    over three seeds. Growth is capped at 5000 Gaussians (a 200-step schedule densifies
-    every step; uncapped, 48 px views grow to 40000 and the fit takes 5x longer)."""
+    over three seeds. Growth is capped at 5000 Gaussians (uncapped, 48 px views grow to 40000
+    and the fit takes 5x longer); refinements every 10 steps up to step 100 (the CPU
+    recipe's 100-step floor would leave none in a 200-step run)."""
     from rainyscape.engine.trainer import Trainer
     from rainyscape.eval.views import render_image
     from rainyscape.imaging.metrics import psnr
 
     cfg, pipe = _quiet_pipeline("3dgs", tiny_scene, ["trainer.max_iters=200", "phases.fit.patch_size=0",
-                                                     "field.init_points=3000", "field.max_gaussians=5000"])
+                                                     "field.init_points=3000", "field.max_gaussians=5000",
+                                                     "field.min_refine_every=10", "trainer.log_every=5"])
     view = tiny_scene.eval_indices[0]
     clean = tiny_scene.clean_images[view].permute(2, 0, 1).float() / 255
 
@@ -323,15 +363,26 @@ def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):
         return float(psnr(render_image(pipe, view), clean))
 
     before = heldout()
+    initial = pipe.field.num_gaussians
     trainer = Trainer(pipe, tmp_path)
     trainer.train()
     after = heldout()
     assert after > before + 5.0 and after > 19.0, (before, after)
+    # the log carries the field's stats: the count and the densifier's cumulative changes
+    records = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    last = records[-1]["stats"]
+    e = pipe.field.events
+    assert last["field.num_gaussians"] == pipe.field.num_gaussians == initial + e["cloned"] + e["split"] - e["pruned"]
+    assert last["field.sh_degree"] == 3 and e["refinements"] > 0 and e["cloned"] + e["split"] > 0
+    assert all(last[f"field.{k}"] == v for k, v in e.items())
+    counts = [r["stats"]["field.num_gaussians"] for r in records]
+    assert counts[0] == initial and counts[-1] > initial  # logged as it changes
     # resume from the checkpoint into a fresh pipeline: same number of Gaussians, same render
     fresh = build_pipeline(copy.deepcopy(cfg), tiny_scene, torch.device("cpu"))
     again = Trainer(fresh, tmp_path)
     again.load()
     assert fresh.field.num_gaussians == pipe.field.num_gaussians
+    assert fresh.field.events == pipe.field.events
     assert torch.allclose(render_image(fresh, view), render_image(pipe, view))
 
 

@@ -8,6 +8,7 @@ import torch.nn.functional as F
 
 from rainyscape.cameras import Cameras, Window
 from rainyscape.errors import ConfigError
+from rainyscape.rain import head as head_module
 from rainyscape.rain.head import RainPredictor, camera_vectors
 from rainyscape.scene import SceneData
 
@@ -62,6 +63,38 @@ def test_windows_equal_crops_of_the_full_view(upscale, latent_channels):
         windows = head(torch.ones(len(corners), dtype=torch.long), Window(x0, y0, 13, 11))
         for b, (x, y) in enumerate(corners):
             assert torch.allclose(windows[b], reference[:, y:y + 11, x:x + 13], atol=1e-6)
+
+
+@pytest.mark.parametrize("share", [0, 10**9])
+def test_gathered_and_dense_latent_regions_agree(monkeypatch, share):
+    """Both ways of computing a latent region (rows of the last MLP layer gathered, or the
+    whole map cut) give the windows of the full-view reference."""
+    scene = _scene(height=70, width=90)
+    head = _head(scene)
+    monkeypatch.setattr(head_module, "DENSE_REGION_SHARE", share)
+    with torch.no_grad():
+        reference = _full_view_reference(head, 2)[0]
+        corners = [(0, 0), (90 - 13, 70 - 11), (37, 22), (3, 50)]
+        windows = head(torch.full((4,), 2), Window(torch.tensor([c[0] for c in corners]),
+                                                   torch.tensor([c[1] for c in corners]), 13, 11))
+    for b, (x, y) in enumerate(corners):
+        assert torch.allclose(windows[b], reference[:, y:y + 11, x:x + 13], atol=1e-6)
+
+
+def test_channels_last_and_autocast_off_cuda_change_nothing():
+    scene = _scene()
+    window = Window(torch.tensor([0, 7]), torch.tensor([3, 0]), 20, 16)
+    ids = torch.tensor([0, 2])
+    outs, grads = [], []
+    for options in ({"channels_last": False}, {"channels_last": True}, {"autocast": True}):
+        head = _head(scene, **options)
+        rain = head(ids, window)
+        rain.square().sum().backward()
+        outs.append(rain.detach())
+        grads.append(torch.cat([p.grad.flatten() for p in head.parameters() if p.grad is not None]))
+    for out, grad in zip(outs[1:], grads[1:]):
+        assert torch.allclose(out, outs[0], atol=1e-6)
+        assert torch.allclose(grad, grads[0], rtol=1e-4, atol=1e-6)
 
 
 def test_output_is_non_negative_and_bounded():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -14,7 +15,8 @@ from rainyscape.cameras import Window
 from rainyscape.errors import ConfigError
 from rainyscape.fields.gaussians.projection import candidate_gaussians, project_gaussians
 from rainyscape.fields.gaussians.rasterize import rasterize, resolve_backend
-from rainyscape.fields.gaussians.rasterize_gsplat import gsplat_installed
+from rainyscape.fields.gaussians.rasterize_gsplat import (BUILD_MESSAGE, forget_gsplat_checks,
+                                                          gsplat_installed, gsplat_usable)
 from rainyscape.fields.gaussians.rasterize_torch import bin_gaussians, composite, min_sigma_in_boxes
 from rainyscape.testing.reference_rasterizer import composite_dense
 from rainyscape.fields.gaussians.sh import sh_to_rgb
@@ -265,6 +267,83 @@ def test_backend_choice():
         resolve_backend("gsplat", torch.device("cpu"))
     with pytest.raises(ConfigError):
         resolve_backend("opengl", torch.device("cpu"))
+
+
+@pytest.fixture
+def fresh_gsplat_checks():
+    forget_gsplat_checks()
+    yield
+    forget_gsplat_checks()
+
+
+@pytest.mark.skipif(gsplat_installed(), reason="gsplat is installed here")
+def test_missing_gsplat_on_cuda_falls_back_with_one_warning(fresh_gsplat_checks, capsys):
+    """auto on a CUDA device without gsplat: the torch rasteriser, one warning, no traceback
+    (resolving needs no GPU: nothing is allocated)."""
+    cuda = torch.device("cuda")
+    assert resolve_backend("auto", cuda) == "torch"
+    assert resolve_backend("auto", cuda) == "torch"
+    err = capsys.readouterr().err
+    assert err.count("warning") == 1 and "gsplat is not installed" in err
+    assert "torch rasteriser" in err and "rainyscape[cuda]" in err and "Traceback" not in err
+    with pytest.raises(ConfigError, match="backend=gsplat"):
+        resolve_backend("gsplat", cuda)
+
+
+def fake_gsplat(root, backend_source: str = "_C = object()\n", init_source: str = ""):
+    pkg = root / "gsplat"
+    (pkg / "cuda").mkdir(parents=True)
+    (pkg / "__init__.py").write_text(init_source)
+    (pkg / "cuda" / "__init__.py").write_text("")
+    (pkg / "cuda" / "_backend.py").write_text(backend_source)
+    return root
+
+
+@pytest.mark.parametrize("case, init, backend, expected", [
+    ("import error", "raise OSError('libcudart.so.12: cannot open shared object file')", "",
+     "gsplat does not import (OSError: libcudart.so.12"),
+    ("build error", "", "raise RuntimeError('Error building extension gsplat_cuda')",
+     "did not build or load (RuntimeError: Error building extension"),
+    ("no toolkit", "", "_C = None\n", "no CUDA toolkit"),
+])
+def test_broken_gsplat_falls_back_with_one_warning(fresh_gsplat_checks, tmp_path, monkeypatch,
+                                                   capsys, case, init, backend, expected):
+    fake_gsplat(tmp_path, backend or "_C = object()\n", init)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in [m for m in sys.modules if m == "gsplat" or m.startswith("gsplat.")]:
+        monkeypatch.delitem(sys.modules, name)
+    forget_gsplat_checks()
+    calls = []
+    assert not gsplat_usable(torch.device("cuda"), smoke_test=calls.append)
+    assert not gsplat_usable(torch.device("cuda"), smoke_test=calls.append)
+    err = capsys.readouterr().err
+    assert err.count("rainyscape: warning:") == 1 and expected in err, err
+    assert calls == []  # nothing ran on the device
+    # the first use of a gsplat that must build its kernels says so
+    if case != "import error":
+        assert BUILD_MESSAGE in err
+
+
+def test_working_gsplat_builds_once_with_a_message(fresh_gsplat_checks, tmp_path, monkeypatch, capsys):
+    fake_gsplat(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in [m for m in sys.modules if m == "gsplat" or m.startswith("gsplat.")]:
+        monkeypatch.delitem(sys.modules, name)
+    forget_gsplat_checks()
+    calls = []
+    assert gsplat_usable(torch.device("cuda"), smoke_test=calls.append)
+    assert gsplat_usable(torch.device("cuda"), smoke_test=calls.append)
+    err = capsys.readouterr().err
+    assert err.count(BUILD_MESSAGE) == 1 and "warning" not in err and len(calls) == 1
+    # a kernel that fails its first render: one warning, the torch rasteriser
+
+    def failing(device):
+        raise RuntimeError("CUDA error: no kernel image is available for execution on the device")
+
+    forget_gsplat_checks()
+    assert not gsplat_usable(torch.device("cuda"), smoke_test=failing)
+    err = capsys.readouterr().err
+    assert err.count("rainyscape: warning:") == 1 and "failed a test render" in err
 
 
 # ---------------------------------------------------------------- conventions

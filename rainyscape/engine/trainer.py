@@ -266,6 +266,7 @@ class Trainer:
                 record = self.train_step()
                 record["time"] = round(time.time() - t0, 3)
                 if self.step % self.cfg.log_every == 0 or self.step == stop:
+                    record["stats"] = {f"field.{k}": v for k, v in self.p.field.stats().items()}
                     self._log(record)
                 if (self.evaluate is not None and self.cfg.eval_every
                         and (self.step % self.cfg.eval_every == 0 or self.step == stop)):

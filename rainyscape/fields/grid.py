@@ -144,6 +144,11 @@ class GridField(RayField):
     def resolution(self) -> int:
         return int(self.grid_resolution)
 
+    def stats(self) -> dict[str, float]:
+        """The grids' resolution (cube root of the lattice size) and the occupied share of
+        the occupancy grid."""
+        return {"grid_resolution": self.resolution, "occupied_fraction": round(self.occupancy.fraction(), 4)}
+
     def step_size(self) -> float:
         """Sample spacing in world units inside the scene box."""
         sizes = torch.tensor(axis_sizes(self.resolution, self.box_half.cpu()), dtype=torch.float32)

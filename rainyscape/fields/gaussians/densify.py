@@ -34,23 +34,44 @@ class DensifySchedule:
     reset_every: int
     sh_every: int  # one more SH degree every this many steps
 
+    def refines_at(self, it: int) -> bool:
+        """Whether densification (grow + prune) runs after completed step ``it``."""
+        return self.start < it < self.stop and it % self.every == 0
+
+    def resets_at(self, it: int) -> bool:
+        """Whether opacities are reset after completed step ``it``: every ``reset_every``
+        steps, as long as a whole ``reset_every`` of densification follows before ``stop``
+        (the densifier's time to recover; at the paper's 30k this is its 3k, 6k, 9k, 12k)."""
+        return it % self.reset_every == 0 and it + self.reset_every <= self.stop
+
+    def resets(self) -> list[int]:
+        return [it for it in range(self.reset_every, self.stop, self.reset_every) if self.resets_at(it)]
+
+    def sh_degree_at(self, step: int, max_degree: int) -> int:
+        """The SH degree used at 0-based ``step``."""
+        return min(max_degree, (step + 1) // self.sh_every)
+
     @staticmethod
     def scaled(max_iters: int, reference_iters: int, start: int, stop: int, every: int,
                reset_every: int, sh_every: int, min_reset_every: int = 0,
-               min_every: int = 0) -> "DensifySchedule":
-        """The schedule given for a ``reference_iters`` run, stretched to ``max_iters``.
+               min_every: int = 0, min_start: int = 0, min_sh_every: int = 0) -> "DensifySchedule":
+        """The schedule given for a ``reference_iters`` run, stretched to ``max_iters``, with
+        floors in steps where a fraction of a short run is too few steps.
 
         Opacity resets stay at least ``min_reset_every`` apart: after one, Adam needs a
         fixed number of steps (not a fraction of the run) to bring opacities back. For the
         same reason refinements stay at least ``min_every`` apart: new Gaussians need some
-        steps to settle before their gradients say whether to split them again."""
+        steps to settle before their gradients say whether to split them again.
+        ``min_start`` lets the initial Gaussians settle before the first refinement and
+        ``min_sh_every`` keeps view-dependent colour from fitting before the geometry has
+        formed. No floor moves the stop, which stays at its share of the run."""
         f = max_iters / reference_iters
 
         def s(x: int) -> int:
             return max(1, round(x * f))
 
-        return DensifySchedule(s(start), s(stop), max(s(every), min_every),
-                               max(s(reset_every), min_reset_every), s(sh_every))
+        return DensifySchedule(max(s(start), min_start), s(stop), max(s(every), min_every),
+                               max(s(reset_every), min_reset_every), max(s(sh_every), min_sh_every))
 
 
 def replace_params(params: nn.ParameterDict, optimizers: dict[str, torch.optim.Optimizer],

@@ -3,9 +3,10 @@
 Parameters (one optimiser each, named as in gsplat): ``means``, ``scales`` (log),
 ``quats`` (w x y z), ``opacities`` (logit), ``sh0`` and ``shN`` (spherical harmonics up
 to ``sh_degree``). Initialised from the scene's sparse points when it has them (COLMAP,
-simulator depth), else uniformly in the scene box. The training schedule (SH degree,
-densification, position learning-rate decay) is the 3DGS paper's 30k-step one, scaled
-to ``trainer.max_iters``.
+simulator depth), else at random (gsplat's: in a cube of 3 x the scene extent about the
+cameras' centroid). The training schedule (SH degree, densification, position
+learning-rate decay) is the 3DGS paper's 30k-step one, scaled to ``trainer.max_iters``
+with floors in steps for short runs (:meth:`DensifySchedule.scaled`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import torch
 from torch import Tensor, nn
@@ -66,8 +68,10 @@ class GaussianField(Field):
     @dataclass
     class Config:
         sh_degree: int = bounded(3, 0, MAX_SH_DEGREE)
+        init: Literal["auto", "points", "random"] = "auto"  # auto: the scene's points if it has them
         init_points: int = bounded(100_000, 0)  # at most this many of the scene's sparse points (random subset)
-        random_points: int = bounded(20_000, 0)  # Gaussians drawn in the scene box when it has no points
+        random_points: int = bounded(100_000, 0)  # random Gaussians (gsplat: 100k) ...
+        random_extent: float = bounded(3.0, 0.0)  # ... in a cube of this x the scene extent about the cameras' centroid (0: the scene box)
         init_opacity: float = bounded(0.1, hi=0.99, above=0.0)
         background: tuple[float, float, float] = bounded((0.0, 0.0, 0.0), 0.0, 1.0)
         backend: str = "auto"  # auto (gsplat on CUDA when installed) | torch | gsplat
@@ -88,9 +92,11 @@ class GaussianField(Field):
         refine_start: int = bounded(500, 0)
         refine_stop: int = bounded(15_000, 0)
         refine_every: int = bounded(100, 1)
+        min_refine_start: int = bounded(0, 0)  # first refinement after at least this many steps, whatever the run
         min_refine_every: int = bounded(0, 0)  # refinements at least this many steps apart, whatever the run
-        reset_every: int = bounded(3000, 1)
+        reset_every: int = bounded(3000, 1)  # (a reset needs reset_every steps of densification after it)
         min_reset_every: int = bounded(1000, 0)  # opacity resets at least this many steps apart, whatever the run
+        min_sh_degree_every: int = bounded(0, 0)  # one more SH degree at most every this many steps
         grow_grad2d: float = bounded(2e-4, 0.0)
         grow_scale3d: float = bounded(0.01, 0.0)
         prune_opacity: float = bounded(0.005, 0.0, 1.0)
@@ -108,6 +114,12 @@ class GaussianField(Field):
             raise ConfigError(f"field.backend must be one of {', '.join(BACKENDS)}, got '{c.backend}'")
         if len(c.background) != 3:
             raise ConfigError("field.background needs three values (r, g, b)")
+        if c.init not in ("auto", "points", "random"):
+            raise ConfigError(f"field.init must be auto, points or random, got '{c.init}'")
+        has_points = scene.points is not None and len(scene.points) > 0
+        if c.init == "points" and not has_points:
+            raise ConfigError(f"field.init=points: scene {scene.name} has no sparse points; "
+                              "use field.init=auto or random")
         self.width, self.height = scene.width, scene.height
         train = scene.train_indices or list(range(scene.num_images))
         self.max_gaussians = growth_cap(c.max_gaussians, c.pixels_per_gaussian,
@@ -118,6 +130,9 @@ class GaussianField(Field):
         self.register_buffer("background", torch.tensor(c.background, dtype=torch.float32))
         self.register_buffer("active_sh_degree", torch.zeros((), dtype=torch.long))
         self._groups: dict[str, ParamGroup] = {}
+        # Cumulative counts of the densifier's changes (logged through stats(); checkpointed
+        # with the training callback).
+        self.events = {"refinements": 0, "cloned": 0, "split": 0, "pruned": 0, "opacity_resets": 0}
 
     # ------------------------------------------------------------------ set-up
 
@@ -125,7 +140,8 @@ class GaussianField(Field):
         c = self.config
         gen = torch.Generator().manual_seed(c.seed)
         cap = self.max_gaussians or math.inf  # the growth cap bounds the start too
-        if scene.points is not None and len(scene.points) > 0:
+        use_points = scene.points is not None and len(scene.points) > 0 and c.init != "random"
+        if use_points:
             points = scene.points.float()
             colors = (scene.point_colors.float() / 255.0 if scene.point_colors is not None
                       else torch.full_like(points, 0.5))
@@ -134,8 +150,14 @@ class GaussianField(Field):
                 pick = torch.randperm(len(points), generator=gen)[:keep]
                 points, colors = points[pick], colors[pick]
         else:
-            count = int(min(c.random_points, cap))
-            lo, hi = scene.scene_box[0].float(), scene.scene_box[1].float()
+            count = max(1, int(min(c.random_points, cap)))
+            if c.random_extent > 0:  # gsplat: a cube of init_extent x the scene scale
+                train = scene.train_indices or list(range(scene.num_images))
+                center = scene.cameras[train].centers.float().mean(0)
+                half = c.random_extent * self.extent
+                lo, hi = center - half, center + half
+            else:
+                lo, hi = scene.scene_box[0].float(), scene.scene_box[1].float()
             points = lo + (hi - lo) * torch.rand(count, 3, generator=gen)
             colors = torch.rand(count, 3, generator=gen)
         n = len(points)
@@ -153,6 +175,11 @@ class GaussianField(Field):
     @property
     def num_gaussians(self) -> int:
         return self.params["means"].shape[0]
+
+    def stats(self) -> dict[str, float]:
+        """The Gaussian count, the SH degree in use and the densifier's cumulative changes."""
+        return {"num_gaussians": self.num_gaussians, "sh_degree": int(self.active_sh_degree),
+                **self.events}
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config
@@ -176,7 +203,8 @@ class GaussianField(Field):
         c = self.config
         return DensifySchedule.scaled(max_iters, c.reference_iters, c.refine_start, c.refine_stop,
                                       c.refine_every, c.reset_every, c.sh_degree_every,
-                                      c.min_reset_every, c.min_refine_every)
+                                      c.min_reset_every, c.min_refine_every, c.min_refine_start,
+                                      c.min_sh_degree_every)
 
     # ---------------------------------------------------------------- render
 
@@ -237,8 +265,7 @@ class GaussianTraining(Callback):
 
     def before_step(self, state: TrainState) -> None:
         f = self.field
-        sched = f.schedule(state.max_iters)
-        f.active_sh_degree.fill_(min(f.config.sh_degree, (state.step + 1) // sched.sh_every))
+        f.active_sh_degree.fill_(f.schedule(state.max_iters).sh_degree_at(state.step, f.config.sh_degree))
 
     def after_backward(self, state: TrainState, output: RenderOutput) -> None:
         sched = self.field.schedule(state.max_iters)
@@ -259,22 +286,27 @@ class GaussianTraining(Callback):
         if it >= sched.stop:
             return
         params, opts = self.field.params, state.optimizers
+        events = self.field.events
         changed = False
-        if it > sched.start and it % sched.every == 0:
+        if sched.refines_at(it):
             n_clone, n_split = self.densifier.grow(params, opts)
             n_prune = self.densifier.prune(params, opts, prune_large=it > sched.reset_every)
             self.densifier.reset_stats()
             self.last_stats = {"cloned": n_clone, "split": n_split, "pruned": n_prune,
                                "gaussians": self.field.num_gaussians}
+            for key, n in (("refinements", 1), ("cloned", n_clone), ("split", n_split), ("pruned", n_prune)):
+                events[key] += n
             changed = True
-        if it % sched.reset_every == 0:
+        if sched.resets_at(it):
             self.densifier.reset_opacity(params, opts, 2 * self.field.config.prune_opacity)
+            events["opacity_resets"] += 1
             changed = True
         if changed:
             self.field.sync_param_groups()
 
     def state_dict(self) -> dict:
-        return self.densifier.state_dict()
+        return {**self.densifier.state_dict(), "events": dict(self.field.events)}
 
     def load_state_dict(self, state: dict) -> None:
         self.densifier.load_state_dict(state)
+        self.field.events.update(state.get("events", {}))

@@ -1,7 +1,8 @@
 """One rasterisation entry point with a gsplat-like signature; picks the backend.
 
 ``backend="auto"`` uses gsplat (CUDA) when the tensors are on a CUDA device and gsplat
-is installed, and the tiled torch rasteriser otherwise (CPU, or CUDA without gsplat).
+works there, and the tiled torch rasteriser otherwise (CPU, or CUDA without a working
+gsplat: one warning says so).
 The torch path first culls, cheaply and without gradients, the Gaussians that cannot be
 in view, and projects, colours and composites the rest only.
 """
@@ -16,7 +17,7 @@ from torch import Tensor
 from rainyscape.cameras import Window
 from rainyscape.errors import ConfigError
 from rainyscape.fields.gaussians.projection import candidate_gaussians, project_gaussians
-from rainyscape.fields.gaussians.rasterize_gsplat import gsplat_installed, rasterize_gsplat
+from rainyscape.fields.gaussians.rasterize_gsplat import gsplat_usable, rasterize_gsplat
 from rainyscape.fields.gaussians.rasterize_torch import composite
 from rainyscape.fields.gaussians.sh import sh_to_rgb
 
@@ -33,13 +34,18 @@ class Rasterized:
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
+    """The rasteriser for ``backend`` on ``device``. ``auto`` on CUDA uses gsplat when it works
+    (the first use builds its kernels, with a message) and otherwise the torch rasteriser,
+    after one warning; an explicit ``gsplat`` that cannot run is a one-line ConfigError."""
     if backend not in BACKENDS:
         raise ConfigError(f"rasteriser backend '{backend}' is not one of {', '.join(BACKENDS)}")
     if backend == "auto":
-        return "gsplat" if device.type == "cuda" and gsplat_installed() else "torch"
-    if backend == "gsplat" and (device.type != "cuda" or not gsplat_installed()):
-        raise ConfigError("backend=gsplat needs CUDA tensors and gsplat "
-                          "(pip install 'rainyscape[cuda]'); use backend=auto or torch")
+        return "gsplat" if device.type == "cuda" and gsplat_usable(device) else "torch"
+    if backend == "gsplat":
+        why = ("it needs CUDA tensors" if device.type != "cuda"
+               else "" if gsplat_usable(device) else "gsplat does not work here (see the warning above)")
+        if why:
+            raise ConfigError(f"field.backend=gsplat: {why}; use field.backend=auto or torch")
     return backend
 
 
