@@ -99,7 +99,8 @@ def test_cells_run_in_parallel_then_resume_as_done(tmp_path, tiny_scene_dir):
     hold every row: oracle, input, methods, fused, fused − input and the control."""
     out = tmp_path / "results"
     args = ["rs-bench", "methods=nerf,rainyscape-nerf", f"scenes={tiny_scene_dir}", "iters=4", f"out={out}",
-            "name=tiny", "device=cpu", "jobs=2", "threads=1", "trainer.eval_every=0"]
+            "name=tiny", "device=cpu", "jobs=2", "threads=1", "trainer.eval_every=0",
+            "rainyscape-nerf:phases.joint.patch_size=16"]  # 256 rays a joint step against nerf's 1024
     refused = subprocess.run(args, capture_output=True, text=True)
     assert refused.returncode == 2 and "allow_unequal=true" in refused.stderr and not out.exists()
     args.append("allow_unequal=true")

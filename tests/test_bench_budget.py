@@ -15,6 +15,9 @@ from rainyscape.config import method_config
 from rainyscape.errors import ConfigError
 
 
+PAPER_PATCH = "phases.joint.patch_size=64"
+
+
 def _budget(method: str, *overrides: str, size: int = 128) -> Budget:
     return cell_budget(method_config(method, ["trainer.max_iters=100", *overrides]), size, size)
 
@@ -24,10 +27,12 @@ def test_budgets_of_the_real_methods():
     assert (nerf.family, nerf.steps, nerf.pixels_per_step) == ("grid", 100, 1024)
     robust = _budget("robust-nerf")  # 16 x 16 patches with nerf's rays per step
     assert robust.family == "grid" and robust.same_as(nerf)
-    ours = _budget("rainyscape-nerf")  # warm-up: nerf's rays; joint: one 64 x 64 patch
-    assert [(p.name, p.steps, p.pixels) for p in ours.phases] == [("warmup", 50, 1024), ("joint", 50, 4096)]
-    assert ours.pixels_per_step == 2560 and not ours.same_as(nerf)
-    assert ours.describe() == "100 steps × 2560 px/step (warmup 50 × 1024, joint 50 × 4096)"
+    ours = _budget("rainyscape-nerf")  # warm-up: nerf's rays; joint: one 32 x 32 patch, as many
+    assert [(p.name, p.steps, p.pixels) for p in ours.phases] == [("warmup", 50, 1024), ("joint", 50, 1024)]
+    assert ours.same_as(nerf)
+    paper = _budget("rainyscape-nerf", PAPER_PATCH)  # the paper's 64 x 64 joint patch on nerf's warm-up
+    assert paper.pixels_per_step == 2560 and not paper.same_as(nerf)
+    assert paper.describe() == "100 steps × 2560 px/step (warmup 50 × 1024, joint 50 × 4096)"
     gs = _budget("3dgs")  # whole views: width x height
     assert (gs.family, gs.pixels_per_step) == ("gaussians", 128 * 128)
     assert _budget("rainyscape-3dgs").same_as(gs) and _budget("robust-3dgs").same_as(gs)
@@ -39,7 +44,8 @@ def test_budgets_of_the_real_methods():
 
 
 def _table(*methods: str) -> list[tuple[str, str, Budget]]:
-    return [(f"yard/{m}", "yard", _budget(m)) for m in methods]
+    """Cells on yard; rainyscape-nerf with the paper's joint patch (more rays than nerf's)."""
+    return [(f"yard/{m}", "yard", _budget(m, *([PAPER_PATCH] if m == "rainyscape-nerf" else []))) for m in methods]
 
 
 def test_unequal_budgets_within_a_field_are_refused():
@@ -69,7 +75,7 @@ def test_equal_budgets_and_different_fields_pass():
 
 def test_budget_column_prints_the_difference():
     cells = build_cells(["nerf", "rainyscape-nerf", "3dgs"], [("yard", "/y")], [])
-    budgets = {f"yard/{m}": _budget(m).to_dict() for m in ("nerf", "rainyscape-nerf", "3dgs")}
+    budgets = {key: b.to_dict() for key, _, b in _table("nerf", "rainyscape-nerf", "3dgs")}
     results = {"cells": {}, "budgets": budgets}
     col = budget_column(cells, results)
     assert col == {"nerf": "100 × 1024", "rainyscape-nerf": "100 × 2560 (≠ nerf: 100 × 1024)", "3dgs": "100 × 16384"}
@@ -83,7 +89,8 @@ def test_budget_column_prints_the_difference():
 
 
 def test_rs_bench_refuses_unequal_budgets_before_anything_runs(tmp_path):
-    done = subprocess.run(["rs-bench", "scenes=cpu", "methods=nerf,rainyscape-nerf", "iters=5", f"out={tmp_path}"],
+    done = subprocess.run(["rs-bench", "scenes=cpu", "methods=nerf,rainyscape-nerf", "iters=5", f"rainyscape-nerf:{PAPER_PATCH}",
+                           f"out={tmp_path}"],
                           capture_output=True, text=True)
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
     scenes = ", ".join(SCENE_SETS["cpu"].presets)

@@ -1,8 +1,13 @@
-"""End to end on a small rainy scene: rainyscape-nerf against nerf on the same budget.
+"""End to end on a small rainy scene: rainyscape-3dgs against 3dgs on the same budget.
 
-The demo street at 64 x 64 px (8 views, the demo's rain): at 48 px (the shared tiny scene)
-drops are thinner than a pixel and the predicted rain cannot be told from noise. The floors
-come from measured runs of this exact configuration (below), with margin: they catch a rain module that stops separating rain from the scene, not drifts.
+The demo street at 64 x 64 px (8 views, the demo's rain), 300 steps. At this size neither
+render reaches the rainy input, so the assertions are about the rain module itself: the
+predicted rain follows the true rain, fusing with it beats fusing with a random mask of the
+same coverage (the gain comes from where the rain is predicted, not from copying the input),
+and the fused views beat the plain field. The floors come from measured runs of this exact
+configuration (below), with margin: they catch a rain module that stops separating rain
+from the scene, not drifts. (rainyscape-nerf at this budget: correlation 0.05 / 0.06, too
+close to noise for a floor; docs/rain.md.)
 """
 
 from __future__ import annotations
@@ -11,12 +16,13 @@ import json
 
 import pytest
 
-ITERS = 300  # half warm-up, half joint phase
+ITERS = 300
 
-# Measured, seeds 0 / 1: rain correlation 0.090 / 0.101; train PSNR rainyscape-nerf 22.70 / 23.74
-# vs nerf 20.79 / 21.33 (+1.91 / +2.41 dB).
-MIN_RAIN_CORRELATION = 0.04
-MIN_GAIN_DB = 0.8
+# Measured, seeds 0 / 1: rain correlation 0.158 / 0.246; fused 27.07 / 26.90 against the
+# random-mask control 26.29 / 25.94 and 3dgs's render 26.10 / 25.87 (rainy input 27.33 / 26.42).
+MIN_RAIN_CORRELATION = 0.08
+MIN_FUSED_OVER_CONTROL_DB = 0.3
+MIN_FUSED_OVER_PLAIN_DB = 0.4
 
 
 @pytest.fixture(scope="module")
@@ -28,8 +34,8 @@ def summaries(tmp_path_factory) -> dict[str, dict]:
     root = tmp_path_factory.mktemp("rain_e2e")
     scene = generate(root / "scene", "demo", rows=2, cols=4, width=64, height=64, mode="static", seed=0)
     out = {}
-    for method in ("nerf", "rainyscape-nerf"):
-        cfg = method_config(method, [f"data={scene}", f"trainer.max_iters={ITERS}", f"field.lr_decay_steps={ITERS}",
+    for method in ("3dgs", "rainyscape-3dgs"):
+        cfg = method_config(method, [f"data={scene}", f"trainer.max_iters={ITERS}",
                                      f"trainer.output_dir={root}", "trainer.device=cpu", "trainer.progress=false",
                                      "trainer.eval_every=0", "trainer.checkpoint_every=0"])
         out[method] = json.loads((train_and_evaluate(cfg).run_dir / "metrics.json").read_text())["summary"]
@@ -37,9 +43,15 @@ def summaries(tmp_path_factory) -> dict[str, dict]:
 
 
 def test_predicted_rain_correlates_with_the_true_rain_layer(summaries):
-    assert summaries["rainyscape-nerf"]["rain_correlation"] > MIN_RAIN_CORRELATION
+    assert summaries["rainyscape-3dgs"]["rain_correlation"] > MIN_RAIN_CORRELATION
 
 
-def test_derained_training_views_beat_nerf_on_the_same_budget(summaries):
-    ours, base = summaries["rainyscape-nerf"]["train_psnr"], summaries["nerf"]["train_psnr"]
-    assert ours > base + MIN_GAIN_DB, (ours, base)
+def test_fusion_gain_comes_from_the_predicted_rain(summaries):
+    ours = summaries["rainyscape-3dgs"]
+    fused, control = ours["train_rain-mask-fusion_psnr"], ours["train_rain-mask-fusion_random_psnr"]
+    assert fused > control + MIN_FUSED_OVER_CONTROL_DB, (fused, control)
+
+
+def test_fused_views_beat_the_plain_field_on_the_same_budget(summaries):
+    fused, base = summaries["rainyscape-3dgs"]["train_rain-mask-fusion_psnr"], summaries["3dgs"]["train_psnr"]
+    assert fused > base + MIN_FUSED_OVER_PLAIN_DB, (fused, base)

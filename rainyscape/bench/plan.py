@@ -46,6 +46,21 @@ class BenchPlan:
                            ablation, self.ablation_method, self.per_method)
 
 
+def split_method_overrides(overrides: list[str], methods: list[str]) -> tuple[list[str], dict[str, list[str]]]:
+    """``METHOD:key=value`` goes to that method's cells only (e.g. the paper's joint patch for
+    rainyscape-nerf alone); the rest go to every cell."""
+    common, per = [], {}
+    for o in overrides:
+        method, colon, rest = o.partition("=")[0].partition(":")
+        if not colon:
+            common.append(o)
+        elif method not in methods:
+            raise ConfigError(f"rs-bench: {o}: {method} is not one of methods= ({', '.join(methods)})")
+        else:
+            per.setdefault(method, []).append(o[len(method) + 1:])
+    return common, per
+
+
 def family_iters(methods: list[str], overrides: list[str], iters: dict[str, int]) -> dict[str, list[str]]:
     """Per method, the ``trainer.max_iters`` override a scene set gives its field family."""
     out = {}
@@ -100,11 +115,13 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
     # ones the cells train with (and a cell's fingerprint says which recipe it ran).
     profile = opts.profile if opts.profile != "auto" else "gpu" if uses_cuda(opts.device) else "cpu"
     base = [f"profile={profile}"] + ([f"trainer.max_iters={opts.iters}"] if opts.iters else [])
+    every = list(dict.fromkeys(methods + ([opts.ablation_method] if opts.ablation else [])))
+    overrides, own = split_method_overrides(overrides, every)
     # Every method and override must be valid before any scene is simulated or cell trained.
     validate_cells(build_cells(methods, [("", "")], base + overrides,
-                               ("", "") if opts.ablation else None, opts.ablation_method))
-    every = list(dict.fromkeys(methods + ([opts.ablation_method] if opts.ablation else [])))
+                               ("", "") if opts.ablation else None, opts.ablation_method, own))
     per_method = family_iters(every, base + overrides, sset.iters) if sset and not opts.iters else {}
+    per_method = {m: per_method.get(m, []) + own.get(m, []) for m in every}
     size = dict(width=opts.scene_width or (sset.width if sset else 0),
                 height=opts.scene_height or (sset.height if sset and not opts.scene_width else 0),
                 rows=opts.scene_rows or (sset.rows if sset else 0), cols=opts.scene_cols or (sset.cols if sset else 0))

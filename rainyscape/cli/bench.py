@@ -2,7 +2,7 @@
 
 Usage:
   rs-bench [methods=M1,M2,...] [scenes=SET|S1,S2,...] [iters=N] [out=DIR] [name=NAME] [key=value ...]
-           [KEY.PATH=value ...]
+           [KEY.PATH=value ...] [METHOD:KEY.PATH=value ...]
 
 Scenes: a scene set (cpu: five presets at 128 px, the six-method table in an hour on 2 cores
 with jobs=2 threads=1; paper: 512 px, 5 x 10 views, the paper's step counts, for a GPU), or
@@ -10,7 +10,8 @@ simulator presets (simulated once into OUT/scenes) and scene folders; demo alone
 embedded demo. A set fixes size, views and steps per field; scene_width= ... iters= override.
 Before anything trains, every cell's budget (steps, mean pixels per step) is computed and
 methods training the same field must match (exit 2 naming them, unless allow_unequal=true).
-Dotted keys (trainer.eval_every=0, ...) go to every cell. Each cell trains in its own process;
+Dotted keys (trainer.eval_every=0, ...) go to every cell; METHOD:KEY.PATH=value to that
+method's cells only. Each cell trains in its own process;
 OUT/NAME.json is updated after every cell and rerunning the same command skips finished cells
 and resumes interrupted ones. jobs=N trains N cells at once, each with threads= torch threads
 (default: cores / N). OUT/NAME.md holds the Table-I-style tables: the oracle 3D row (the clean

@@ -6,7 +6,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 from torch import Tensor
+
+from rainyscape.imaging.metrics import psnr
 
 if TYPE_CHECKING:
     from rainyscape.eval.views import ViewImages
@@ -72,8 +75,10 @@ def labelled(image: np.ndarray, label: str) -> np.ndarray:
     image = enlarge(image)
     h, w = image.shape[:2]
     band = np.zeros((LABEL_HEIGHT, w, 3), np.uint8)
-    scale = 0.4
-    cv2.putText(band, label, (3, LABEL_HEIGHT - 5), cv2.FONT_HERSHEY_SIMPLEX, scale,
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.4
+    (text_w, _), _ = cv2.getTextSize(label, font, scale, 1)
+    scale *= min(1.0, (w - 6) / max(text_w, 1))  # a long label shrinks to fit its panel
+    cv2.putText(band, label, (3, LABEL_HEIGHT - 5), font, scale,
                 (255, 255, 255), 1, cv2.LINE_AA)
     return np.concatenate([band, image], axis=0)
 
@@ -100,17 +105,35 @@ def grid(rows: list[list[tuple[str, np.ndarray]]], gap: int = 2) -> np.ndarray:
     return np.concatenate(out[:-1], axis=0)
 
 
+RAIN_DISPLAY_MAX_GAIN = 4.0  # rain panels are brightened together, at most this much
+
+
 def strip_panels(v: "ViewImages") -> list[tuple[str, np.ndarray]]:
-    """``rainy | ours | (post-processed) | ground truth | rain map`` for one view."""
-    panels = [("rainy input", to_uint8(v.rainy)), ("render", to_uint8(v.rendered))]
-    panels += [(f"+ {key}", to_uint8(img)) for key, img in v.post.items()]
+    """``rainy | render | (post-processed) | clean | predicted rain | true rain`` for one view,
+    each with its PSNR against the clean view (the rain panels: against the true rain) when
+    the scene has them. Both rain panels are shown at one gain (written on them), so faint
+    streaks stay visible and the two compare."""
+    def score(image: Tensor, reference: Tensor | None) -> str:
+        return "" if reference is None else f" {float(psnr(image, reference)):.1f} dB"
+
+    panels = [("rainy input" + score(v.rainy, v.clean), to_uint8(v.rainy)),
+              ("render" + score(v.rendered, v.clean), to_uint8(v.rendered))]
+    panels += [(f"+ {key}" + score(img, v.clean), to_uint8(img)) for key, img in v.post.items()]
     if v.clean is not None:
-        panels.append(("ground truth", to_uint8(v.clean)))
+        panels.append(("clean", to_uint8(v.clean)))
     if v.rain is not None:
-        panels.append(("predicted rain", to_uint8(v.rain)))
-    if v.true_rain is not None and v.rain is not None:
-        panels.append(("true rain", to_uint8(v.true_rain)))
+        gain = rain_display_gain(v.true_rain if v.true_rain is not None else v.rain)
+        shown = f" x{gain:.1f}" if gain > 1 else ""
+        panels.append(("predicted rain" + score(v.rain, v.true_rain) + shown, to_uint8(v.rain * gain)))
+        if v.true_rain is not None:
+            panels.append(("true rain" + shown, to_uint8(v.true_rain * gain)))
     return panels
+
+
+def rain_display_gain(rain: Tensor) -> float:
+    """The brightening that puts the rain's 99.5th percentile at white (1 .. the cap)."""
+    top = float(torch.quantile(rain.float().flatten()[::max(1, rain.numel() // 100_000)], 0.995))
+    return float(min(RAIN_DISPLAY_MAX_GAIN, max(1.0, 1.0 / max(top, 1e-6))))
 
 
 def save_png(path: Path, image: np.ndarray) -> Path:

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from rainyscape.components import Loss, LossContext
 from rainyscape.errors import ConfigError
-from rainyscape.imaging.metrics import ssim
+from rainyscape.imaging.metrics import ssim_map
 
 
 class L1SSIM(Loss):
@@ -33,6 +33,10 @@ class L1SSIM(Loss):
         # letting B go below I where rain is predicted (the two L1 terms cancel for
         # I - R < B < I, a dead band that keeps the rain in B)
         anchor_scale: float = 0.0
+        # s > 0 (beyond the paper): every term weighted per pixel by exp(-(R / s)^2), R the
+        # predicted rain (detached): where rain is predicted, the Gaussians are fitted by the
+        # other views alone (rain-aware robust fitting; rain is view-inconsistent)
+        rain_exclusion: float = 0.0
 
     def __init__(self, config: "L1SSIM.Config | None" = None):
         super().__init__(config or self.Config())
@@ -43,11 +47,12 @@ class L1SSIM(Loss):
         w = self.config.ssim_weight
         use_rain = self.config.with_rain and ctx.rain is not None
         pred = ctx.rendered + ctx.rain if use_rain else ctx.rendered
-        l1 = (pred - ctx.target).abs().mean()
+        keep = self._kept_pixels(ctx.rain) if use_rain else None
+        l1 = _mean((pred - ctx.target).abs(), keep)
         loss = (1.0 - w) * l1
         self.metrics = {"l1": float(l1.detach())}
         if w > 0:
-            s = ssim(pred, ctx.target, padding="same")
+            s = _mean(ssim_map(pred, ctx.target, padding="same"), keep)
             loss = loss + w * (1.0 - s)
             self.metrics["ssim"] = float(s.detach())
         if use_rain and self.config.render_l1:
@@ -55,5 +60,17 @@ class L1SSIM(Loss):
             if self.config.anchor_scale > 0:
                 rain = ctx.rain.detach().mean(1, keepdim=True)
                 anchor = anchor * torch.exp(-(rain / self.config.anchor_scale) ** 2)
-            loss = loss + (1.0 - w) * anchor.mean()
+            loss = loss + (1.0 - w) * _mean(anchor, keep)
         return loss
+
+    def _kept_pixels(self, rain: Tensor) -> Tensor | None:
+        """Per-pixel weights (B, 1, H, W) that leave predicted rain out (None: every pixel counts)."""
+        if self.config.rain_exclusion <= 0:
+            return None
+        return torch.exp(-(rain.detach().mean(1, keepdim=True) / self.config.rain_exclusion) ** 2)
+
+
+def _mean(values: Tensor, weights: Tensor | None) -> Tensor:
+    """The mean of ``values``, each pixel weighted (weights sum to at most the pixel count, so
+    left-out pixels lower the loss rather than lifting the others)."""
+    return values.mean() if weights is None else (values * weights).mean()

@@ -19,7 +19,7 @@ import copy
 
 from rainyscape.config import (ComponentConfig, LossConfig, MethodSpec, PhaseConfig, PipelineConfig,
                                TrainerConfig)
-from rainyscape.methods.rainyscape_nerf import PAPER_WEIGHTS
+from rainyscape.methods.rainyscape_nerf import PAPER_RAIN_HEAD_GPU, PAPER_WEIGHTS
 
 GS_ITERS = 1500  # CPU-friendly run (the demo in about 10 minutes on 2 cores); the paper's is 30k (trainer.max_iters=30000)
 PAPER_WARMUP = 4000 / 30000  # the paper's warm-up: 4k of 30k steps
@@ -28,6 +28,10 @@ CPU_RAIN_HEAD = {"lowres_channels": (32, 32, 32, 32), "highres_channels": 16}
 # CPU budget (docs/benchmarks.md, "Gaussian splatting"): at most 20k Gaussians, and one per
 # 5 training pixels on small scenes; refinements at least 100 steps apart in short runs.
 CPU_GAUSSIANS = {"max_gaussians": 20_000, "pixels_per_gaussian": 5, "min_refine_every": 100}
+# The GPU recipe: the 3DGS paper's run, its schedule unscaled (densify from 500 to 15k every
+# 100, resets every 3k), no Gaussian cap.
+GS_GPU = ["trainer.max_iters=30000", "field.max_gaussians=0", "field.pixels_per_gaussian=0",
+          "field.min_refine_every=0", "trainer.eval_every=5000", "trainer.checkpoint_every=5000"]
 
 gaussians_3dgs = MethodSpec(
     name="3dgs",
@@ -45,6 +49,7 @@ gaussians_3dgs = MethodSpec(
             checkpoint_every=1000,
         ),
     ),
+    gpu=GS_GPU,
 )
 
 
@@ -75,4 +80,5 @@ rainyscape_3dgs = MethodSpec(
     name="rainyscape-3dgs",
     description="RainyScape on 3D Gaussian Splatting: 3DGS warm-up, then the rain module (authors' loss split)",
     config=_rainyscape_3dgs(),
+    gpu=GS_GPU + PAPER_RAIN_HEAD_GPU,
 )

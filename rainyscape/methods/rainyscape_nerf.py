@@ -3,7 +3,8 @@
 
 Each is its plain counterpart (``nerf``, ``vanilla-nerf``: same field, data and iteration
 budget, read from it, never copied) plus the rain module: warm-up with the photometric loss
-alone, then the joint phase with the rain head, the four rain losses on 64 x 64 patches and
+alone, then the joint phase with the rain head, the four rain losses on one square patch per step (as many rays as a
+warm-up step: 32 x 32 for ``nerf``'s 1024, the paper's 64 x 64 for 4096) and
 Langevin latent updates, and rain-mask fusion as post-processing. Plain data only: this
 module imports no torch.
 """
@@ -11,12 +12,15 @@ module imports no torch.
 from __future__ import annotations
 
 import copy
+import math
 
 from rainyscape.config import ComponentConfig, LossConfig, MethodSpec, PhaseConfig, PipelineConfig
-from rainyscape.methods.nerf import nerf, vanilla_nerf
+from rainyscape.methods.nerf import NERF_GPU, VANILLA_GPU, nerf, vanilla_nerf
 
 # The paper's loss weights (likelihood, reconstruction, tv, agr).
 PAPER_WEIGHTS = {"likelihood": 0.1, "reconstruction": 500.0, "tv": 0.5, "agr": 1.0}
+# The paper's rain head (512/256/128/128 at latent resolution, 64 after PixelShuffle): GPU recipes.
+PAPER_RAIN_HEAD_GPU = ["rain_head.lowres_channels=[512,256,128,128]", "rain_head.highres_channels=64"]
 
 
 def rain_losses(weights: dict[str, float], agr: dict | None = None) -> dict[str, LossConfig]:
@@ -30,20 +34,30 @@ def rain_losses(weights: dict[str, float], agr: dict | None = None) -> dict[str,
     }
 
 
+def square_patch(rays: int) -> int:
+    """The side of the one square patch a joint step sees: as many rays as the base method's
+    step (1024 -> 32, 4096 -> 64), so that the rain method and its base train on equal budgets."""
+    side = math.isqrt(rays)
+    if side * side != rays:
+        raise ValueError(f"{rays} rays per step make no square patch")
+    return side
+
+
 def with_rain_module(base: MethodSpec, name: str, *, weights: dict[str, float],
                      rain_head: dict, warmup_fraction: float,
                      field_lr_joint: float | None = None, agr: dict | None = None,
                      fusion: dict | None = None) -> PipelineConfig:
     """``base``'s config with the rain module added: its one ``fit`` phase becomes the
     warm-up (same batches) followed by the joint phase, in which the rain head predicts R
-    on one 64 x 64 patch per step (the paper)."""
+    on one square patch per step with the rays of a warm-up step (the paper: 64 x 64 = 4096)."""
     cfg = copy.deepcopy(base.config)
     cfg.method = name
     cfg.rain_head = ComponentConfig("rain-predictor", dict(rain_head))
     fit = cfg.phases["fit"]
     cfg.phases = {
         "warmup": PhaseConfig(end=warmup_fraction, patches=fit.patches, patch_size=fit.patch_size),
-        "joint": PhaseConfig(patches=1, patch_size=64, heads=("rain_head",), field_lr=field_lr_joint),
+        "joint": PhaseConfig(patches=1, patch_size=square_patch(fit.patches * fit.patch_size ** 2),
+                             heads=("rain_head",), field_lr=field_lr_joint),
     }
     cfg.losses = rain_losses(weights, agr)
     cfg.postprocess = {"rain-mask-fusion": ComponentConfig("rain-mask-fusion", dict(fusion or {}))}
@@ -59,6 +73,7 @@ rainyscape_nerf = MethodSpec(
         rain_head={"lowres_channels": (32, 32, 32, 32), "highres_channels": 16},
         warmup_fraction=0.5,
     ),
+    gpu=NERF_GPU + PAPER_RAIN_HEAD_GPU + ["phases.joint.patch_size=64"],  # 4096 rays, as nerf's GPU recipe
 )
 
 rainyscape_vanilla_nerf = MethodSpec(
@@ -71,4 +86,5 @@ rainyscape_vanilla_nerf = MethodSpec(
         warmup_fraction=0.5,
         field_lr_joint=1e-6,  # the paper: NeRF nearly frozen after the warm-up
     ),
+    gpu=VANILLA_GPU,
 )

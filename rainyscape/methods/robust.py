@@ -64,6 +64,8 @@ robust_nerf = MethodSpec(
     name="robust-nerf",
     description="nerf with a RobustNeRF-style trimmed loss (robust baseline, no rain model)",
     config=_robust_config(nerf, "robust-nerf", "l2", 0.0, _photometric_weight(nerf)),
+    # nerf's GPU recipe, its 4096 rays as 16 patches of 16 x 16
+    gpu=[o for o in nerf.gpu if not o.startswith("phases.fit.patches=")] + ["phases.fit.patches=16"],
 )
 
 robust_3dgs = MethodSpec(
@@ -71,4 +73,5 @@ robust_3dgs = MethodSpec(
     description="3dgs with a RobustNeRF-style trimmed L1 + D-SSIM loss (robust baseline)",
     config=_robust_config(gaussians_3dgs, "robust-3dgs", "l1", _dssim_fraction(gaussians_3dgs),
                           _photometric_weight(gaussians_3dgs)),
+    gpu=list(gaussians_3dgs.gpu),
 )
