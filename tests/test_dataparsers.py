@@ -101,6 +101,11 @@ def test_llff_uses_prescaled_images_folder(tiny_scene, exports, tmp_path):
     s = LLFFParser(LLFFConfig(downscale=2)).parse(root)
     assert s.images.shape == (12, 24, 24, 3) and s.metadata["images"].endswith("images_2")
     assert s.cameras.fx[0].item() == pytest.approx(tiny_scene.cameras.fx[0].item() / 2, rel=1e-5)
+    # downscale=4 without images_4/ (the authors' Yard ships images_2/ only): images_2/ shrunk by 2
+    (root / "images").rename(root / "originals")
+    s = LLFFParser(LLFFConfig(downscale=4)).parse(root)
+    assert s.images.shape == (12, 12, 12, 3) and s.metadata["images"].endswith("images_2")
+    assert s.cameras.fx[0].item() == pytest.approx(tiny_scene.cameras.fx[0].item() / 4, rel=1e-5)
 
 
 def test_downscale_and_holdout_options(tiny_scene_dir, tmp_path):

@@ -53,11 +53,11 @@ def test_demo_scene_is_cached_and_never_left_half_written(tmp_path, monkeypatch)
     calls = []
     real = demo.generate
 
-    def tiny(out, preset, force=False):
+    def tiny(out, preset, force=False, **size):
         calls.append(out)
         return real(out, preset, rows=1, cols=2, width=16, height=16, force=force)
 
-    def interrupted(out, preset, force=False):
+    def interrupted(out, preset, force=False, **size):
         real(out, preset, rows=1, cols=1, width=8, height=8, force=force)
         raise KeyboardInterrupt
 

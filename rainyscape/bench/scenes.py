@@ -24,7 +24,7 @@ class ScenePlan:
     height: int = 0
     rows: int = 0
     cols: int = 0
-    embedded: bool = False  # the embedded demo scene (the demo preset at its own size)
+    embedded: bool = False  # the embedded demo scene (synth/demo.py: DEMO_PRESET at DEMO_SIZE)
 
 
 def plan_scene(spec: str, width: int = 0, height: int = 0, rows: int = 0, cols: int = 0) -> ScenePlan:

@@ -38,7 +38,7 @@ class LLFFConfig(CommonParserConfig):
     images: str = "auto"  # image folder; auto: images/, else images_rain/
     clean: str = "auto"  # auto: the `_rain` -> `_wo_rain` sibling if it exists; "": none
     pose_convention: str = "auto"  # auto, llff (down, right, back) or opencv (right, down, forward)
-    use_prescaled: bool = True  # with downscale=N read images_N/ when it exists (LLFF habit)
+    use_prescaled: bool = True  # with downscale=N read images_N/ (or images_k/, k dividing N) when it exists (LLFF habit)
 
 
 def read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -112,8 +112,12 @@ class LLFFParser(DataParser):
                 raise DataError(f"{folder}: image folder not found (images=)")
             return folder, 1
         factor = max(1, int(cfg.downscale))
-        if factor > 1 and cfg.use_prescaled and (root / f"images_{factor}").is_dir():
-            return root / f"images_{factor}", factor
+        if factor > 1 and cfg.use_prescaled:
+            # images_N itself, else the smallest images_k it can be made from (k divides N):
+            # the authors' Yard ships images_2/ only, and downscale=8 reads it shrunk by 4
+            for k in range(factor, 1, -1):
+                if factor % k == 0 and (root / f"images_{k}").is_dir():
+                    return root / f"images_{k}", k
         for name in ("images", "images_rain"):
             if (root / name).is_dir():
                 return root / name, 1
@@ -152,10 +156,10 @@ class LLFFParser(DataParser):
                           torch.full((len(f),), h / 2.0), w, h)
         clean = self._clean(root, image_dir, files, (w, h))
         scene_cfg = cfg
-        if prescaled > 1:  # images_N are already downscaled: do not shrink them again
+        if prescaled > 1:  # images_k are already downscaled by k: shrink them by the rest only
             from dataclasses import replace
 
-            scene_cfg = replace(cfg, downscale=1)
+            scene_cfg = replace(cfg, downscale=max(1, int(cfg.downscale)) // prescaled)
         forward = rot_cv[:, :, 2]
         facing = bool((forward @ forward.mean(0) / np.linalg.norm(forward.mean(0))).min() > np.cos(np.radians(35)))
         return assemble_scene(

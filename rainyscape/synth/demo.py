@@ -15,7 +15,10 @@ from pathlib import Path
 
 from rainyscape.synth.simulate import SIM_VERSION, generate
 
-DEMO_PRESET = "demo"
+# The medium-rain crossroad at 128 px, 3 x 6 views: rainyscape-3dgs trains on it in about
+# 5 minutes on 2 cores (docs/benchmarks.md, "Demo runs").
+DEMO_PRESET = "crossroad"
+DEMO_SIZE = {"rows": 3, "cols": 6, "width": 128, "height": 128}
 
 
 def cache_root() -> Path:
@@ -24,7 +27,7 @@ def cache_root() -> Path:
 
 
 def demo_path() -> Path:
-    return cache_root() / f"demo-scene-v{SIM_VERSION}"
+    return cache_root() / f"demo-scene-{DEMO_PRESET}-v{SIM_VERSION}"
 
 
 def ensure_demo_scene(verbose: bool = True) -> Path:
@@ -37,7 +40,7 @@ def ensure_demo_scene(verbose: bool = True) -> Path:
     try:
         if verbose:
             print(f"generating the demo scene into {final} (once) ...", flush=True)
-        generate(tmp, DEMO_PRESET, force=True)
+        generate(tmp, DEMO_PRESET, force=True, **DEMO_SIZE)
         if final.exists():  # a stale, incomplete folder (or another process won the race)
             if (final / "scene.json").is_file():
                 return final

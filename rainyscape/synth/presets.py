@@ -26,7 +26,7 @@ class Preset:
 
 
 PRESETS: dict[str, Preset] = {p.name: p for p in [
-    Preset("demo", "street", "street corner, medium rain slanted by a light wind (the embedded demo)",
+    Preset("demo", "street", "street corner, medium rain slanted by a light wind",
            {"density": 1.16, "wind_deg": 12.0, "wind_azimuth_deg": 20.0}, rows=3, cols=8, width=192, height=192,
            label_db=26.0, level="medium"),
     Preset("yard", "yard", "house, fence and garden, light near-vertical drizzle",
