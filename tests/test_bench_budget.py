@@ -36,6 +36,7 @@ def test_budgets_of_the_real_methods():
     gs = _budget("3dgs")  # whole views: width x height
     assert (gs.family, gs.pixels_per_step) == ("gaussians", 128 * 128)
     assert _budget("rainyscape-3dgs").same_as(gs) and _budget("robust-3dgs").same_as(gs)
+    assert _budget("rainyscape-plus").same_as(gs)
     assert _budget("3dgs", size=64).pixels_per_step == 64 * 64
     # a run stopped early counts the steps it runs, in the phases it runs them
     stopped = _budget("rainyscape-nerf", "trainer.stop_at=40")

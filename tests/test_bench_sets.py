@@ -53,6 +53,11 @@ def test_every_cell_trains_the_recipe_its_budget_was_checked_for():
         _plan(scenes="demo", profile="tpu")
 
 
+def test_a_table_evaluates_every_view():
+    overrides = _plan(scenes="demo", device="cpu").overrides
+    assert "trainer.final_eval_views=0" in overrides and "trainer.final_eval_share=0" in overrides
+
+
 def test_paper_set_and_explicit_overrides():
     plan = _plan(scenes="paper")
     assert all((p.width, p.height, p.rows, p.cols) == (512, 512, 5, 10) for p in plan.scenes)

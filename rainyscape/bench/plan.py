@@ -114,7 +114,9 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
     # The recipe is fixed here, for every cell alike, so that the budgets checked below are the
     # ones the cells train with (and a cell's fingerprint says which recipe it ran).
     profile = opts.profile if opts.profile != "auto" else "gpu" if uses_cuda(opts.device) else "cpu"
-    base = [f"profile={profile}"] + ([f"trainer.max_iters={opts.iters}"] if opts.iters else [])
+    # A table measures every view: no time limit on the cells' end-of-run evaluation.
+    base = [f"profile={profile}", "trainer.final_eval_views=0", "trainer.final_eval_share=0"]
+    base += [f"trainer.max_iters={opts.iters}"] if opts.iters else []
     every = list(dict.fromkeys(methods + ([opts.ablation_method] if opts.ablation else [])))
     overrides, own = split_method_overrides(overrides, every)
     # Every method and override must be valid before any scene is simulated or cell trained.

@@ -18,11 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from rainyscape.errors import ConfigError
-from rainyscape.synth.presets import PRESETS
 
-# light, medium, heavy, slanted 30 deg by wind, two directions (docs/simulator.md). The medium
-# one is the simulator's `crossroad` once it has it (its rebuild), the demo street until then.
-CPU_PRESETS = ("yard", "crossroad" if "crossroad" in PRESETS else "demo", "plaza", "street", "bridge")
+# light, medium, heavy, slanted 30 deg by wind, two directions (docs/simulator.md).
+CPU_PRESETS = ("yard", "crossroad", "plaza", "street", "bridge")
 
 
 @dataclass(frozen=True)
