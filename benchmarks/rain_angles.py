@@ -54,7 +54,7 @@ def main() -> None:
     parser.add_argument("--contrast", type=float, default=0.3, help="background texture contrast")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    print(f"| kernel | smoothing | bins | mean error (deg) | max error | > 3 deg | K=2 both found |")
+    print("| kernel | smoothing | bins | mean error (deg) | max error | > 3 deg | K=2 both found |")
     print("|---|---|---|---|---|---|---|")
     for kernel, smoothing, bins in SETTINGS:
         e = single_direction_errors(kernel, smoothing, bins, args.seeds, args.contrast)

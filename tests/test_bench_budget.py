@@ -99,3 +99,18 @@ def test_rs_bench_refuses_unequal_budgets_before_anything_runs(tmp_path):
            "rainyscape-nerf: 5 steps × 2867 px/step (warmup 2 × 1024, joint 3 × 4096)" in done.stderr
     assert "allow_unequal=true" in done.stderr
     assert not list(tmp_path.iterdir())  # nothing simulated, trained or written
+
+
+def test_rain_table_lists_rain_methods_with_their_means():
+    from rainyscape.bench.tables import rain_table
+
+    cells = build_cells(["3dgs", "rainyscape-3dgs"], [("yard", "/y"), ("plaza", "/p")], [])
+    summaries = {"yard/3dgs": {"train_psnr": 20.0},
+                 "plaza/3dgs": {"train_psnr": 20.0},
+                 "yard/rainyscape-3dgs": {"rain_correlation": 0.5, "rain_angle_error_deg": 10.0},
+                 "plaza/rainyscape-3dgs": {"rain_correlation": 0.7, "rain_angle_error_deg": 4.0}}
+    results = {"cells": {k: {"status": "finished", "summary": s} for k, s in summaries.items()}}
+    table = rain_table(cells, results).splitlines()
+    assert len(table) == 3 and "3dgs |" not in table[2].replace("rainyscape-3dgs |", "")
+    assert table[2] == "| rainyscape-3dgs | 0.50 / 10.0° | 0.70 / 4.0° | 0.60 / 7.0° |"
+    assert rain_table(cells[:1], results) == ""

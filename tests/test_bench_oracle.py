@@ -47,7 +47,6 @@ def test_oracle_scores_the_rerender_against_the_stored_clean_views(tiny_scene_di
 
 
 def test_oracle_of_a_real_generated_scene(tiny_scene_dir):
-    pytest.importorskip("rainyscape.synth.oracle", reason="the simulator cannot re-render scenes yet")
     entry = scene_oracle(str(tiny_scene_dir), _cfg())
     assert entry["available"], entry.get("reason")
     # an independent sample set of the same clean scene: far above any method, below identity

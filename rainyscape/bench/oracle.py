@@ -41,10 +41,6 @@ def unavailable(folder: str) -> str | None:
     """Why a folder has no oracle, when that is known without rendering (None: try it)."""
     if not (Path(folder) / "scene.json").is_file():
         return "not a simulated scene folder (no scene.json): no clean scene to re-render"
-    try:
-        from rainyscape.synth.oracle import rerender_clean  # noqa: F401
-    except ImportError:
-        return "this simulator cannot re-render a scene (no rainyscape.synth.oracle)"
     return None
 
 

@@ -204,6 +204,28 @@ def budget_notes(cells: list[Cell], results: dict) -> list[str]:
     return notes
 
 
+def rain_table(cells: list[Cell], results: dict) -> str:
+    """Per rain method and scene: the predicted rain's correlation with the true rain layer
+    and its streak angle's error (degrees), and their means; "" when no cell has them."""
+    done = _done(cells, results)
+    scenes = list(dict.fromkeys(c.scene for c in cells))
+    methods = [m for m in dict.fromkeys(c.method for c in cells)
+               if any("rain_correlation" in done.get(f"{sc}/{m}", {}).get("summary", {}) for sc in scenes)]
+    if not methods:
+        return ""
+    head = ["Method"] + [f"{sc} corr ↑ / angle err ↓" for sc in scenes] + ["Average"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for m in methods:
+        pairs = [(s.get("rain_correlation"), s.get("rain_angle_error_deg"))
+                 for s in (done.get(f"{sc}/{m}", {}).get("summary", {}) for sc in scenes)]
+        cols = ["n/a" if r is None or a is None else f"{r:.2f} / {a:.1f}°" for r, a in pairs]
+        known = [(r, a) for r, a in pairs if r is not None and a is not None]
+        mean = (f"{sum(r for r, _ in known) / len(known):.2f} / {sum(a for _, a in known) / len(known):.1f}°"
+                if known else "n/a")
+        lines.append("| " + " | ".join([m] + cols + [mean]) + " |")
+    return "\n".join(lines)
+
+
 def markdown_report(cells: list[Cell], results: dict) -> str:
     main = [c for c in cells if not c.key.startswith("ablation/")]
     ablation = [c for c in cells if c.key.startswith("ablation/")]
@@ -219,6 +241,11 @@ def markdown_report(cells: list[Cell], results: dict) -> str:
         for note in oracle_notes(main, results) + fusion_notes(main, results) + budget_notes(main, results):
             parts += [note, ""]
         parts += ["## Novel views (held-out views)", "", markdown_table(main, results, "heldout"), ""]
+        rain = rain_table(main, results)
+        if rain:
+            parts += ["## The predicted rain layer (training views)", "", rain, "",
+                      "Correlation of the predicted rain with the true rain layer, and the error of its "
+                      "streak angle against the true rain's (degrees).", ""]
     if ablation:
         parts += [f"## Loss ablation ({ablation[0].method} on {ablation[0].scene}; the paper's Table II)", "",
                   markdown_table(ablation, results, "train"), ""]
