@@ -114,3 +114,21 @@ def test_rain_table_lists_rain_methods_with_their_means():
     assert len(table) == 3 and "3dgs |" not in table[2].replace("rainyscape-3dgs |", "")
     assert table[2] == "| rainyscape-3dgs | 0.50 / 10.0° | 0.70 / 4.0° | 0.60 / 7.0° |"
     assert rain_table(cells[:1], results) == ""
+
+
+@pytest.mark.parametrize("profile", ["cpu", "gpu"])
+def test_every_recipe_builds_and_a_field_family_shares_one_budget(profile):
+    """Both recipes of every method of this package materialise, and methods training one field
+    get one budget (within the paper-faithful pairs, robust baselines and rainyscape-plus)."""
+    from rainyscape import registry
+
+    ours = [n for n, e in registry.entries("method").items() if e.target.startswith("rainyscape.methods")]
+    budgets = {m: cell_budget(method_config(m, [f"profile={profile}"]), 512, 512) for m in ours}
+    groups = {"grid": ("nerf", "robust-nerf", "rainyscape-nerf"),
+              "nerf-mlp": ("vanilla-nerf", "rainyscape-vanilla-nerf"),
+              "gaussians": ("3dgs", "robust-3dgs", "rainyscape-3dgs", "rainyscape-plus")}
+    assert sorted(ours) == sorted(m for g in groups.values() for m in g)
+    for family, methods in groups.items():
+        first = budgets[methods[0]]
+        assert first.family == family
+        assert all(budgets[m].same_as(first) for m in methods), {m: budgets[m].describe() for m in methods}
