@@ -11,7 +11,8 @@ from rainyscape.components import LossContext, RenderOutput
 from rainyscape.errors import ConfigError
 from rainyscape.losses.agr import AdaptiveGradientRotation, agr_loss, mean_abs_derivative
 from rainyscape.imaging.gradients import directional_derivative, image_gradients
-from rainyscape.losses.rain_losses import Likelihood, Reconstruction, TotalVariation
+from rainyscape.losses.l1_ssim import L1SSIM
+from rainyscape.losses.rain_losses import Likelihood, Reconstruction, TotalVariation, dry_weight
 from rainyscape.testing.streaks import streak_layer, textured_background
 
 
@@ -148,3 +149,36 @@ def test_agr_rejects_bad_options():
         AdaptiveGradientRotation(AdaptiveGradientRotation.Config(bins=2))
     with pytest.raises(ConfigError):
         AdaptiveGradientRotation(AdaptiveGradientRotation.Config(kernel="prewitt"))
+
+
+def test_dry_weight_by_hand():
+    layer = torch.tensor([0.0, 0.1, 0.2]).view(1, 3, 1, 1).expand(1, 3, 2, 2).clone()  # channel mean 0.1
+    assert torch.allclose(dry_weight(layer, 0.1), torch.full((1, 1, 2, 2), math.exp(-1.0)))
+    assert torch.equal(dry_weight(torch.zeros(2, 3, 4, 4), 0.05), torch.ones(2, 1, 4, 4))
+
+
+def _rain_split(brightness: float = 0.5, **options):
+    """The Gaussians' l1-ssim (authors' split) on a 4 x 4 view of ``brightness`` whose left
+    half has strong predicted rain (0.5, render 0.3); the loss's gradient on the render."""
+    target = torch.full((1, 3, 4, 4), brightness)
+    rain = torch.zeros(1, 3, 4, 4)
+    rain[..., :2] = 0.5
+    rendered = torch.full((1, 3, 4, 4), 0.3, requires_grad=True)
+    loss = L1SSIM(L1SSIM.Config(ssim_weight=0.0, with_rain=True, render_l1=True, **options))(
+        _ctx(rendered, target, rain))
+    loss.backward()
+    return rendered.grad
+
+
+def test_rain_exclusion_leaves_rainy_pixels_to_the_other_views():
+    # I = 1 > B + R: both L1 terms pull the render up, unless the rainy pixels are left out
+    grad = _rain_split(1.0, rain_exclusion=0.05)
+    assert grad[..., :2].abs().max() < 1e-12 and grad[..., 2:].abs().min() > 0
+    assert _rain_split(1.0)[..., :2].abs().min() > 0
+
+
+def test_anchor_scale_drops_the_anchor_where_rain_is_predicted():
+    # left half: B + R = 0.8 > I pushes B down, and only the anchor |B - I| pulls it back up
+    left = _rain_split(anchor_scale=0.05)[..., :2]
+    assert (left > 0).all()  # a positive gradient: descent lowers B towards I - R
+    assert _rain_split()[..., :2].abs().max() < 1e-6  # the dead band: the two L1 terms cancel

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import torch
 from torch import Tensor
 
 from rainyscape.components import Loss, LossContext
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.metrics import ssim_map
+from rainyscape.losses.rain_losses import dry_weight
 
 
 class L1SSIM(Loss):
@@ -47,7 +47,9 @@ class L1SSIM(Loss):
         w = self.config.ssim_weight
         use_rain = self.config.with_rain and ctx.rain is not None
         pred = ctx.rendered + ctx.rain if use_rain else ctx.rendered
-        keep = self._kept_pixels(ctx.rain) if use_rain else None
+        # Per-pixel weights that leave predicted rain out (None: every pixel counts).
+        exclusion = self.config.rain_exclusion if use_rain else 0.0
+        keep = dry_weight(ctx.rain, exclusion) if exclusion > 0 else None
         l1 = _mean((pred - ctx.target).abs(), keep)
         loss = (1.0 - w) * l1
         self.metrics = {"l1": float(l1.detach())}
@@ -58,16 +60,9 @@ class L1SSIM(Loss):
         if use_rain and self.config.render_l1:
             anchor = (ctx.rendered - ctx.target).abs()
             if self.config.anchor_scale > 0:
-                rain = ctx.rain.detach().mean(1, keepdim=True)
-                anchor = anchor * torch.exp(-(rain / self.config.anchor_scale) ** 2)
+                anchor = anchor * dry_weight(ctx.rain, self.config.anchor_scale)
             loss = loss + (1.0 - w) * _mean(anchor, keep)
         return loss
-
-    def _kept_pixels(self, rain: Tensor) -> Tensor | None:
-        """Per-pixel weights (B, 1, H, W) that leave predicted rain out (None: every pixel counts)."""
-        if self.config.rain_exclusion <= 0:
-            return None
-        return torch.exp(-(rain.detach().mean(1, keepdim=True) / self.config.rain_exclusion) ** 2)
 
 
 def _mean(values: Tensor, weights: Tensor | None) -> Tensor:

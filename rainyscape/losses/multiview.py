@@ -25,6 +25,7 @@ from rainyscape.errors import ConfigError
 from rainyscape.imaging.metrics import ssim_map
 from rainyscape.losses.multiview_evidence import (backproject, neighbour_colours, neighbour_table,
                                                   rain_evidence)
+from rainyscape.losses.rain_losses import dry_weight
 from rainyscape.scene import SceneData
 
 
@@ -75,7 +76,7 @@ class MultiviewPhotometric(Loss):
         grey = evidence.mean(1, keepdim=True)
         if self.config.use_rain and ctx.rain is not None:
             grey = torch.maximum(grey, ctx.rain.detach().mean(1, keepdim=True))
-        return torch.exp(-(grey / self.config.scale) ** 2)
+        return dry_weight(grey, self.config.scale)
 
     def __call__(self, ctx: LossContext) -> Tensor:
         c = self.config

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor
 
 from rainyscape.components import Loss, LossContext
@@ -30,6 +31,12 @@ def likelihood_loss(residual: Tensor, eps: float = 1e-6) -> Tensor:
 def reconstruction_loss(residual: Tensor) -> Tensor:
     """mean(r^2)."""
     return residual.pow(2).mean()
+
+
+def dry_weight(layer: Tensor, scale: float) -> Tensor:
+    """Per-pixel weights (B, 1, h, w) in (0, 1]: exp(-(g / scale)^2), g the layer's channel
+    mean (rain, or rain evidence; detached): 1 where it is dry, 1/e at g = scale."""
+    return torch.exp(-(layer.detach().mean(1, keepdim=True) / scale) ** 2)
 
 
 def total_variation(images: Tensor) -> Tensor:
