@@ -21,9 +21,11 @@ NERF_ITERS = 1500
 # The GPU recipe of the fast field: 4x the rays, 10x the steps and a finer final lattice
 # (256^3 over the contracted cube: under one voxel per pixel at 512 px). Reasoned from the
 # CPU measurements (the field fits its images in about 1.5k CPU steps at 128 px); not yet
-# timed on a GPU (docs/fields.md, "Profiles").
+# timed on a GPU (docs/profiles.md). NERF_GPU holds what every method on this field shares;
+# each method spreads NERF_GPU_RAYS over its own phases and batches.
+NERF_GPU_RAYS = 4096
 NERF_GPU = ["trainer.max_iters=15000", "field.lr_decay_steps=15000", "field.resolution_final=256",
-            "phases.fit.patches=4096", "trainer.eval_every=2500", "trainer.checkpoint_every=2500"]
+            "trainer.eval_every=2500", "trainer.checkpoint_every=2500"]
 
 nerf = MethodSpec(
     name="nerf",
@@ -41,7 +43,7 @@ nerf = MethodSpec(
             checkpoint_every=500,
         ),
     ),
-    gpu=NERF_GPU,
+    gpu=NERF_GPU + [f"phases.fit.patches={NERF_GPU_RAYS}"],
 )
 
 VANILLA_ITERS = 200_000  # nerf-pytorch's default run

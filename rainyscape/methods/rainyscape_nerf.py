@@ -15,7 +15,7 @@ import copy
 import math
 
 from rainyscape.config import ComponentConfig, LossConfig, MethodSpec, PhaseConfig, PipelineConfig
-from rainyscape.methods.nerf import NERF_GPU, VANILLA_GPU, nerf, vanilla_nerf
+from rainyscape.methods.nerf import NERF_GPU, NERF_GPU_RAYS, VANILLA_GPU, nerf, vanilla_nerf
 
 # The paper's loss weights (likelihood, reconstruction, tv, agr).
 PAPER_WEIGHTS = {"likelihood": 0.1, "reconstruction": 500.0, "tv": 0.5, "agr": 1.0}
@@ -73,9 +73,9 @@ rainyscape_nerf = MethodSpec(
         rain_head={"lowres_channels": (32, 32, 32, 32), "highres_channels": 16},
         warmup_fraction=0.5,
     ),
-    # nerf's GPU recipe on its two phases: 4096 rays a step, the joint ones as the paper's 64 x 64 patch
-    gpu=[o for o in NERF_GPU if not o.startswith("phases.fit.")] + PAPER_RAIN_HEAD_GPU
-    + ["phases.warmup.patches=4096", "phases.joint.patch_size=64"],
+    # nerf's GPU rays in both phases: the joint ones as one patch (the paper's 64 x 64)
+    gpu=NERF_GPU + PAPER_RAIN_HEAD_GPU + [f"phases.warmup.patches={NERF_GPU_RAYS}",
+                                          f"phases.joint.patch_size={square_patch(NERF_GPU_RAYS)}"],
 )
 
 rainyscape_vanilla_nerf = MethodSpec(

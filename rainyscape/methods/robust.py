@@ -13,7 +13,7 @@ import copy
 
 from rainyscape.config import LossConfig, MethodSpec, PipelineConfig
 from rainyscape.methods.gaussians import gaussians_3dgs
-from rainyscape.methods.nerf import nerf
+from rainyscape.methods.nerf import NERF_GPU, NERF_GPU_RAYS, nerf
 
 # The robust decisions (smoothing, tiles) need neighbouring pixels: train on patches at least
 # this wide, keeping the counterpart's rays per step.
@@ -64,8 +64,7 @@ robust_nerf = MethodSpec(
     name="robust-nerf",
     description="nerf with a RobustNeRF-style trimmed loss (robust baseline, no rain model)",
     config=_robust_config(nerf, "robust-nerf", "l2", 0.0, _photometric_weight(nerf)),
-    # nerf's GPU recipe, its 4096 rays as 16 patches of 16 x 16
-    gpu=[o for o in nerf.gpu if not o.startswith("phases.fit.patches=")] + ["phases.fit.patches=16"],
+    gpu=NERF_GPU + [f"phases.fit.patches={NERF_GPU_RAYS // MIN_PATCH ** 2}"],  # nerf's rays in patches
 )
 
 robust_3dgs = MethodSpec(
