@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from rainyscape.imaging.angles import (angle_difference_deg, bin_centers, estimate_rain_angles,
-                                       histogram_peaks, orientation_histogram, streak_angle)
+                                       histogram_peaks, matched_angle_error_deg, orientation_histogram,
+                                       streak_angle)
 from rainyscape.testing.streaks import streak_layer, textured_background
 
 
@@ -77,3 +78,13 @@ def test_batched_estimates_are_per_image():
     theta, _ = estimate_rain_angles(batch)
     est = torch.rad2deg(streak_angle(theta))[:, 0].tolist()
     assert angle_difference_deg(est[0], 20) <= 3 and angle_difference_deg(est[1], 135) <= 3
+
+
+def test_matched_angle_error():
+    # one true direction: the strongest prediction alone counts (a lucky second one does not)
+    assert matched_angle_error_deg([100.0, 80.0], [80.0]) == 20.0
+    # two: the pairing that fits, whichever of them was the stronger in either image
+    assert matched_angle_error_deg([112.0, 70.0], [68.0, 110.0]) == 2.0
+    assert matched_angle_error_deg([179.0, 60.0], [1.0, 64.0]) == 3.0  # period 180
+    assert matched_angle_error_deg([90.0], [68.0, 110.0]) == 22.0  # one predicted: the strongest true
+    assert matched_angle_error_deg([], [90.0]) is None and matched_angle_error_deg([90.0], []) is None

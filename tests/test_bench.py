@@ -96,7 +96,8 @@ def test_fingerprint_changes_with_the_budget():
 @pytest.mark.slow
 def test_cells_run_in_parallel_then_resume_as_done(tmp_path, tiny_scene_dir):
     """Two cells at once; unequal budgets run only with allow_unequal=true, and the tables then
-    hold every row: oracle, input, methods, fused, fused − input and the control."""
+    hold every row: oracle, the plain field on the clean views, input, methods, fused,
+    fused − input and the control."""
     out = tmp_path / "results"
     args = ["rs-bench", "methods=nerf,rainyscape-nerf", f"scenes={tiny_scene_dir}", "iters=4", f"out={out}",
             "name=tiny", "device=cpu", "jobs=2", "threads=1", "trainer.eval_every=0",
@@ -108,8 +109,11 @@ def test_cells_run_in_parallel_then_resume_as_done(tmp_path, tiny_scene_dir):
     assert first.returncode == 0, first.stdout + first.stderr
     assert "warning: unequal budgets (allow_unequal=true): field 'grid'" in first.stdout
     results = json.loads((out / "tiny.json").read_text())
-    assert sorted(c["method"] for c in results["cells"].values()) == ["nerf", "rainyscape-nerf"]
-    cell = next(c for c in results["cells"].values() if c["method"] == "nerf")
+    assert sorted(c["label"] for c in results["cells"].values()) == ["nerf", "nerf on clean views", "rainyscape-nerf"]
+    cell = next(c for c in results["cells"].values() if c["label"] == "nerf")
+    ceiling = next(c for c in results["cells"].values() if c["label"] == "nerf on clean views")
+    assert "dataparser.images=images_wo_rain" in ceiling["overrides"] and ceiling["budget"] == cell["budget"]
+    assert ceiling["summary"]["rainy_input_psnr"] > 60  # its "input" is the clean views themselves
     assert cell["status"] == "finished" and cell["iters"] == 4 and cell["how"] == "trained"
     assert cell["summary"]["train_psnr"] > 5 and cell["peak_rss_mib"] > 50 and cell["train_s"] > 0
     assert cell["cpu_s"] > 0 and cell["budget"]["steps"] == 4 and cell["budget"]["pixels_per_step"] == 1024
@@ -121,12 +125,14 @@ def test_cells_run_in_parallel_then_resume_as_done(tmp_path, tiny_scene_dir):
     table = (out / "tiny.md").read_text()
     train = table.split("## De-raining at the training views")[1].split("## Novel views")[0]
     labels = [line.split(" | ")[0].strip("| ") for line in train.splitlines() if line.startswith("| ")][1:]
-    assert labels[:6] == ["oracle 3D", "rainy input", "nerf", "rainyscape-nerf", "rainyscape-nerf + rain-mask-fusion",
-                          "↳ fused − input"]
-    assert labels[6].startswith("↳ control: random mask, same coverage")
+    assert labels[:7] == ["oracle 3D", "nerf on clean views", "rainy input", "nerf", "rainyscape-nerf",
+                          "rainyscape-nerf + rain-mask-fusion", "↳ fused − input"]
+    assert labels[7].startswith("↳ control: random mask, same coverage")
+    floor = next(line for line in train.splitlines() if line.startswith("| rainy input |"))
+    assert f"| {cell['summary']['rainy_input_psnr']:.2f} |" in floor  # the rainy input, not the ceiling's
     assert "(≠ nerf: 4 × 1024)" in train and "**Unequal budgets within a field**" in train
     second = subprocess.run(args, capture_output=True, text=True)
-    assert second.returncode == 0 and second.stdout.count("done earlier, skipped") == 2
+    assert second.returncode == 0 and second.stdout.count("done earlier, skipped") == 3
     assert json.loads((out / "tiny.json").read_text())["cells"] == results["cells"]
 
 

@@ -116,6 +116,22 @@ def test_rain_table_lists_rain_methods_with_their_means():
     assert rain_table(cells[:1], results) == ""
 
 
+def test_gap_table_puts_each_gain_next_to_the_gap_its_field_leaves():
+    from rainyscape.bench.tables import gap_table, markdown_report
+
+    cells = build_cells(["3dgs", "rainyscape-3dgs"], [("yard", "/y"), ("plaza", "/p")], [], ceiling=["3dgs"])
+    psnr = {"yard/3dgs on clean views": 31.0, "plaza/3dgs on clean views": 33.0, "yard/3dgs": 30.0,
+            "plaza/3dgs": 25.0, "yard/rainyscape-3dgs": 29.5, "plaza/rainyscape-3dgs": 28.0}
+    gauss = Budget("gaussians", 10, 100.0, ()).to_dict()
+    results = {"cells": {k: {"status": "finished", "summary": {"train_psnr": v}, "budget": gauss}
+                         for k, v in psnr.items()}}
+    table = gap_table(cells, results, "train").splitlines()
+    assert table[2] == "| rainyscape-3dgs (over 3dgs) | -0.50 / 1.00 | +3.00 / 8.00 | +1.25 / 4.50 |"
+    assert len(table) == 3  # the plain field is not compared with itself
+    assert "Gain over the plain field" in markdown_report(cells, results)
+    assert gap_table([c for c in cells if not c.clean], results, "train") == ""  # no ceiling, no table
+
+
 @pytest.mark.parametrize("profile", ["cpu", "gpu"])
 def test_every_recipe_builds_and_a_field_family_shares_one_budget(profile):
     """Both recipes of every method of this package materialise, and methods training one field

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 
+from rainyscape.bench.matrix import has_clean_views
 from rainyscape.bench.options import BenchOptions
 from rainyscape.bench.plan import plan_bench
 from rainyscape.bench.sets import SCENE_SETS, scene_set
@@ -61,7 +62,8 @@ def test_a_table_evaluates_every_view():
 def test_paper_set_and_explicit_overrides():
     plan = _plan(scenes="paper")
     assert all((p.width, p.height, p.rows, p.cols) == (512, 512, 5, 10) for p in plan.scenes)
-    assert _iters(plan) == {"nerf": 18000, "robust-nerf": 18000, "3dgs": 30000, "robust-3dgs": 30000}
+    assert _iters(plan) == {"nerf": 18000, "robust-nerf": 18000, "3dgs": 30000, "robust-3dgs": 30000,
+                            "nerf on clean views": 18000, "3dgs on clean views": 30000}
     mine = _plan(scenes="cpu", scene_width=64, scene_rows=2, iters=7)
     assert all((p.width, p.height, p.rows, p.cols) == (64, 64, 2, SCENE_SETS["cpu"].cols) for p in mine.scenes)
     assert set(_iters(mine).values()) == {7}
@@ -91,3 +93,18 @@ def test_bad_scene_specs():
         scene_set("cpu,yard")
     with pytest.raises(ConfigError, match="neither a scene set"):
         _plan(scenes="no-such-scene")
+
+
+def test_ceiling_rows_train_listed_plain_fields_on_the_clean_views(tiny_scene_dir, tmp_path):
+    cells = _plan(scenes=str(tiny_scene_dir)).cells()
+    ceilings = [c for c in cells if c.clean]
+    assert [c.method for c in ceilings] == ["nerf", "3dgs"] and cells[:2] == ceilings  # the rows come first
+    nerf = next(c for c in cells if c.label == "nerf")
+    assert ceilings[0].overrides[:len(nerf.overrides)] == nerf.overrides  # the method's budget and recipe
+    assert "dataparser.images=images_wo_rain" in ceilings[0].overrides
+    assert not [c for c in _plan(scenes=str(tiny_scene_dir), ceiling="none").cells() if c.clean]
+    assert [c.method for c in _plan(scenes="yard", ceiling="3dgs").cells() if c.clean] == ["3dgs"]
+    with pytest.raises(ConfigError, match="rainyscape-3dgs not in methods"):
+        _plan(scenes="yard", ceiling="rainyscape-3dgs")
+    (tmp_path / "cameras.csv").write_text("")  # a folder without clean views gets no ceiling row
+    assert has_clean_views(str(tiny_scene_dir)) and has_clean_views("") and not has_clean_views(str(tmp_path))

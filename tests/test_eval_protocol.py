@@ -112,3 +112,37 @@ def test_quick_eval_is_psnr_of_the_first_views_vs_rainy_and_clean():
     scene.clean_images = None  # no clean images: the rainy PSNR only
     assert set(quick_eval(pipe, views=1)) == {"train_psnr_rainy", "heldout_psnr_rainy"}
     assert quick_eval(pipe, views=0) == {}
+
+
+def test_two_direction_rain_is_matched_whichever_direction_dominates():
+    """The bridge preset's rain falls in two directions of about equal strength: the angle
+    error pairs both, so a prediction whose stronger direction is the truth's weaker one is
+    still right; one-direction rain compares the strongest directions as before."""
+    from rainyscape.eval.rain_stats import view_rain_stats
+    from rainyscape.eval.views import ViewImages
+    from rainyscape.testing.streaks import streak_layer
+
+    g = torch.Generator().manual_seed(3)
+    a, b = streak_layer(64, 70, 24, g), streak_layer(64, 115, 24, g)
+    blank = torch.zeros(3, 64, 64)
+
+    def stats(true_rain, predicted, directions):
+        v = ViewImages(0, "v", "train", blank + true_rain[0], blank, None, rain=predicted[0], true_rain=true_rain[0])
+        return view_rain_stats(v, {}, directions)
+
+    swapped = stats(a + 0.8 * b, 0.8 * a + b, 2)
+    assert angle_difference_deg(swapped["rain_angle_deg"], swapped["rain_angle_true_deg"]) > 30  # dominance flipped
+    assert len(swapped["rain_angles_true_deg"]) == 2 and swapped["rain_angle_error_deg"] <= 3.0
+    assert stats(a + 0.8 * b, 0.8 * a + b, 1)["rain_angle_error_deg"] > 30  # strongest against strongest
+    single = stats(a, 0.5 * a + b, 1)  # one true direction: the prediction's strongest is wrong
+    assert "rain_angles_true_deg" not in single and single["rain_angle_error_deg"] > 30
+
+
+def test_the_simulator_records_how_many_directions_its_rain_falls_in(tmp_path, tiny_scene_dir):
+    from rainyscape.dataparsers.maya_csv import simulated_rain
+
+    assert simulated_rain(tiny_scene_dir) == {"rain_directions": 1}
+    (tmp_path / "scene.json").write_text(json.dumps({"rain": {"wind2_deg": 20.0, "mix": 0.45}}))
+    assert simulated_rain(tmp_path) == {"rain_directions": 2}
+    (tmp_path / "scene.json").write_text("{not json")
+    assert simulated_rain(tmp_path) == {} and simulated_rain(tmp_path / "absent") == {}

@@ -76,6 +76,32 @@ def test_random_initialisation_in_scene_box_or_gsplat_cube(tiny_scene):
         make_field(scene, init="points")
 
 
+def test_forward_facing_captures_without_points_start_in_the_training_frustums(tiny_scene):
+    """An LLFF capture without sparse points (the authors' Yard): a cube about the cameras
+    would put every Gaussian in front of the lenses; the frustum init puts each on a training
+    pixel's ray between the near and far bounds, in that pixel's colour."""
+    from rainyscape.fields.gaussians.field import frustum_points, init_mode
+
+    scene = replace(tiny_scene, points=None, point_colors=None, forward_facing=True)
+    assert init_mode("auto", scene) == "frustum" and init_mode("auto", tiny_scene) == "points"
+    assert init_mode("auto", replace(scene, forward_facing=False)) == "random"
+    points, colors = frustum_points(scene, 400, torch.Generator().manual_seed(0))
+    cams = scene.cameras[scene.train_indices]
+    uv, z = cams.project(points)
+    inside = ((uv[..., 0] >= 0) & (uv[..., 0] <= scene.width) & (uv[..., 1] >= 0) & (uv[..., 1] <= scene.height)
+              & (z >= scene.near * 0.999) & (z <= scene.far * 1.001))
+    # every point is on a pixel centre's ray of a training view, within its bounds ...
+    source = inside & ((uv - uv.floor() - 0.5).abs() < 2e-3).all(-1)
+    assert source.any(0).all()
+    # ... and has that pixel's colour
+    b = source.float().argmax(0)
+    px = uv[b, torch.arange(len(points))].floor().long()
+    train = torch.tensor(scene.train_indices)
+    assert torch.allclose(scene.images[train[b], px[:, 1], px[:, 0]].float() / 255.0, colors)
+    field = make_field(scene, random_points=300)
+    assert field.num_gaussians == 300
+
+
 def test_sh_degree_zero_is_view_independent_and_matches_basis():
     dirs = torch.nn.functional.normalize(torch.randn(2, 5, 3), dim=-1)
     coeffs = torch.randn(5, 16, 3)

@@ -5,8 +5,14 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from rainyscape.errors import ConfigError
+
+# The field's ceiling: a method trained on a simulated scene's clean views at the same budget.
+CLEAN_IMAGES = "images_wo_rain"
+CLEAN_OVERRIDES = ["dataparser=maya-csv", f"dataparser.images={CLEAN_IMAGES}", f"dataparser.clean={CLEAN_IMAGES}"]
+CEILING = " on clean views"
 
 # The paper's loss ablation (Table II): variant label -> overrides of the ablated method.
 ABLATIONS: dict[str, list[str]] = {
@@ -29,6 +35,7 @@ class Cell:
     method: str
     overrides: list[str] = field(default_factory=list)
     label: str = ""  # row label (the method, or the ablation variant)
+    clean: bool = False  # trained on the clean views: the field's ceiling at this budget
 
     def fingerprint(self) -> str:
         """What makes two cells the same experiment (a changed budget reruns the cell)."""
@@ -40,15 +47,26 @@ class Cell:
         return self.key.replace("/", "__").replace(" ", "_")
 
 
+def has_clean_views(data: str) -> bool:
+    """Whether a scene folder is one the simulator wrote, with clean views to train on (a
+    folder not simulated yet, "", will be one)."""
+    folder = Path(data)
+    return not data or not folder.is_dir() or ((folder / CLEAN_IMAGES).is_dir() and (folder / "cameras.csv").is_file())
+
+
 def build_cells(methods: list[str], scenes: list[tuple[str, str]], overrides: list[str],
                 ablation: tuple[str, str] | None = None, ablation_method: str = "rainyscape-nerf",
-                method_overrides: dict[str, list[str]] | None = None) -> list[Cell]:
-    """The cells of ``methods`` x ``scenes`` ((label, folder) pairs) and, with ``ablation``,
+                method_overrides: dict[str, list[str]] | None = None, ceiling: list[str] = ()) -> list[Cell]:
+    """The cells of ``methods`` x ``scenes`` ((label, folder) pairs), first the ``ceiling``
+    methods trained on each scene's clean views (where it has them), and with ``ablation``,
     the loss ablation. Each cell's overrides: ``method_overrides[method]`` (e.g. a scene set's
     step count for that method's field), then ``overrides`` (the command's: they win)."""
     per = method_overrides or {}
-    cells = [Cell(f"{label}/{m}", label, data, m, per.get(m, []) + list(overrides), m)
-             for label, data in scenes for m in methods]
+    cells = [Cell(f"{label}/{m}{CEILING}", label, data, m, per.get(m, []) + list(overrides) + CLEAN_OVERRIDES,
+                  f"{m}{CEILING}", clean=True)
+             for label, data in scenes for m in ceiling if has_clean_views(data)]
+    cells += [Cell(f"{label}/{m}", label, data, m, per.get(m, []) + list(overrides), m)
+              for label, data in scenes for m in methods]
     if ablation is not None:
         label, data = ablation
         cells += [Cell(f"ablation/{label}/{variant}", label, data, ablation_method,

@@ -21,6 +21,10 @@ class BenchOptions:
     device: str = field(default="auto", metadata={"help": "auto | cpu | cuda"})
     profile: str = field(default="auto", metadata={"help": "every method's recipe: cpu | gpu | auto (gpu when "
                                                            "the cells train on CUDA)"})
+    ceiling: str = field(default="auto", metadata={"help": "methods also trained on each simulated scene's "
+                                                           "clean views, at the same budget: the field's "
+                                                           "ceiling (auto: nerf and 3dgs where listed; "
+                                                           "none: no such rows)"})
     ablation: str = field(default="", metadata={"help": "a scene for the loss ablation table (default: none)"})
     ablation_method: str = field(default="rainyscape-nerf", metadata={"help": "the method the ablation varies"})
     scene_width: int = field(default=0, metadata={"help": "simulated scenes: image width (0: the set's or "

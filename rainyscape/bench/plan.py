@@ -17,6 +17,8 @@ from rainyscape.config.overrides import uses_cuda
 from rainyscape.config.schema import PROFILES
 from rainyscape.errors import ConfigError
 
+PLAIN_FIELDS = ("nerf", "3dgs")  # ceiling=auto: the fields without a rain model
+
 
 @dataclass
 class BenchPlan:
@@ -27,6 +29,7 @@ class BenchPlan:
     overrides: list[str]  # every cell's: iters=, then the command's dotted keys
     per_method: dict[str, list[str]]  # before those: the scene set's step count for the method's field
     scene_set: str | None = None
+    ceiling: list[str] = field(default_factory=list)  # methods also trained on the clean views
     budgets: dict[str, Budget] = field(default_factory=dict)  # cell key -> budget
     mismatches: list[Mismatch] = field(default_factory=list)  # allowed with allow_unequal=true
 
@@ -43,7 +46,7 @@ class BenchPlan:
         folders = folders or {label: p.folder for label, p in self.plans.items()}
         ablation = (self.ablation.label, folders[self.ablation.label]) if self.ablation else None
         return build_cells(self.methods, [(p.label, folders[p.label]) for p in self.scenes], self.overrides,
-                           ablation, self.ablation_method, self.per_method)
+                           ablation, self.ablation_method, self.per_method, self.ceiling)
 
 
 def split_method_overrides(overrides: list[str], methods: list[str]) -> tuple[list[str], dict[str, list[str]]]:
@@ -59,6 +62,19 @@ def split_method_overrides(overrides: list[str], methods: list[str]) -> tuple[li
         else:
             per.setdefault(method, []).append(o[len(method) + 1:])
     return common, per
+
+
+def ceiling_methods(option: str, methods: list[str]) -> list[str]:
+    """The methods rs-bench also trains on the clean views: ``auto`` the plain fields (nerf,
+    3dgs) among ``methods``, ``none`` (or "") none, else a listed subset of ``methods`` (the
+    ceiling must share its method's budget)."""
+    if option == "auto":
+        return [m for m in PLAIN_FIELDS if m in methods]
+    chosen = [m.strip() for m in option.split(",") if m.strip() and m.strip() != "none"]
+    absent = [m for m in chosen if m not in methods]
+    if absent:
+        raise ConfigError(f"rs-bench: ceiling={option}: {', '.join(absent)} not in methods= ({', '.join(methods)})")
+    return chosen
 
 
 def family_iters(methods: list[str], overrides: list[str], iters: dict[str, int]) -> dict[str, list[str]]:
@@ -132,8 +148,12 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
         raise ConfigError("rs-bench: scenes= lists no scene")
     scenes = list({p.label: p for p in (plan_scene(s, **size) for s in specs)}.values())
     plan = BenchPlan(methods, scenes, plan_scene(opts.ablation, **size) if opts.ablation else None,
-                     opts.ablation_method, base + overrides, per_method, sset.name if sset else None)
-    plan.budgets = plan_budgets(plan.cells(), plan.plans)
+                     opts.ablation_method, base + overrides, per_method, sset.name if sset else None,
+                     ceiling_methods(opts.ceiling, methods))
+    cells = plan.cells()
+    plan.budgets = plan_budgets(cells, plan.plans)
+    # a ceiling trains its method's budget by construction: the methods are what must match
+    compared = {c.key for c in cells if not c.clean and not c.key.startswith("ablation/")}
     plan.mismatches = check_budgets([(key, key.split("/")[0], b) for key, b in plan.budgets.items()
-                                     if not key.startswith("ablation/")], opts.allow_unequal)
+                                     if key in compared], opts.allow_unequal)
     return plan

@@ -2,8 +2,10 @@
 LPIPS, then the average, with each method's budget, training time and peak memory) for the
 training and the held-out views, and the loss ablation (Table II).
 
-Every table starts with the ``oracle 3D`` row (the clean scene re-rendered: the ceiling) and,
-on training views, the ``rainy input`` row (the floor). Each fused row (``method + <pp>``) is
+Every table starts with the ``oracle 3D`` row (the clean scene re-rendered: the ceiling of
+any method), the ``METHOD on clean views`` rows (a plain field trained on the clean views at
+the same budget: the ceiling of the rain methods on that field) and, on training views, the
+``rainy input`` row (the floor). Each fused row (``method + <pp>``) is
 followed by ``↳ fused − input`` (its gain over the rainy input) and ``↳ control`` (the same
 fusion with a random mask of the same coverage): a fused gain belongs to the rain model only
 as far as the fused row is above its control.
@@ -14,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from rainyscape.bench.budget import Budget
-from rainyscape.bench.matrix import Cell
+from rainyscape.bench.matrix import CEILING, Cell
 from rainyscape.bench.oracle import ORACLE_SAMPLES
 from rainyscape.eval.summary import mean_of
 
@@ -30,7 +32,7 @@ class Row:
     label: str
     per_scene: dict[str, dict[str, float | None]]  # scene -> metric -> value
     runs: list[dict] = field(default_factory=list)  # the cells' results (time, memory)
-    kind: str = "method"  # oracle | input | method | fused | gain | control
+    kind: str = "method"  # oracle | ceiling | input | method | fused | gain | control
     method: str = ""  # the row label of the method it belongs to (budget column)
 
 
@@ -59,7 +61,7 @@ def table_rows(cells: list[Cell], results: dict, prefix: str) -> list[Row]:
     if prefix == "train":
         floor = {}
         for s in scenes:
-            found = [r for c in cells if c.scene == s and (r := done.get(c.key))
+            found = [r for c in cells if c.scene == s and not c.clean and (r := done.get(c.key))
                      and "rainy_input_psnr" in r["summary"]]
             if found:
                 floor[s] = {m: found[0]["summary"].get(f"rainy_input_{m}") for m in METRICS}
@@ -70,8 +72,8 @@ def table_rows(cells: list[Cell], results: dict, prefix: str) -> list[Row]:
             continue
         runs = [done[c.key] for c in mine]
         rows.append(Row(label, {c.scene: {m: done[c.key]["summary"].get(f"{prefix}_{m}") for m in METRICS}
-                                for c in mine}, runs, "method", label))
-        if prefix != "train":
+                                for c in mine}, runs, "ceiling" if mine[0].clean else "method", label))
+        if prefix != "train" or mine[0].clean:
             continue
         for p in dict.fromkeys(p for r in runs for p in r.get("postprocess", [])):
             def values(key: str, minus: str = "") -> dict:
@@ -89,7 +91,8 @@ def table_rows(cells: list[Cell], results: dict, prefix: str) -> list[Row]:
             coverage = mean_of([r["summary"].get(f"train_{p}_coverage") for r in runs])
             control = CONTROL + (f" ({100 * coverage:.1f} %)" if coverage is not None else "")
             rows.append(Row(control, values(f"train_{p}_random_"), [], "control", label))
-    return rows
+    first = {"oracle": 0, "ceiling": 1}  # the two ceilings, then the floor and the methods
+    return sorted(rows, key=lambda r: first.get(r.kind, 2))
 
 
 def _budget(key: str, results: dict) -> Budget | None:
@@ -101,7 +104,8 @@ def budget_column(cells: list[Cell], results: dict) -> dict[str, str]:
     """Row label -> the budget column's text: ``steps × mean pixels per step`` (several values
     when scenes differ), and where a method's budget differs from the first method of its
     field family on some scene (allowed only with allow_unequal=true), that difference."""
-    labels = list(dict.fromkeys(c.label for c in cells))
+    # the methods first, so that a difference is named against a method, not its ceiling
+    labels = list(dict.fromkeys(c.label for c in sorted(cells, key=lambda c: c.clean)))
     by = {(c.label, c.scene): _budget(c.key, results) for c in cells}
     text = {}
     for label in labels:
@@ -136,7 +140,7 @@ def markdown_table(cells: list[Cell], results: dict, prefix: str) -> str:
             complete = all(s in row.per_scene for s in scenes)
             values += [_fmt(mean_of([row.per_scene[s].get(m) for s in scenes]) if complete else None, m, signed)
                        for m in METRICS]
-        if row.kind in ("method", "fused"):
+        if row.kind in ("method", "fused", "ceiling"):
             t = mean_of([r.get("train_s") for r in row.runs])
             mem = max([r.get("peak_cuda_mib") or r.get("peak_rss_mib") or 0 for r in row.runs], default=0)
             values += [budgets.get(row.method, "–"), f"{t:.0f}" if t is not None else "–",
@@ -160,7 +164,14 @@ def oracle_notes(cells: list[Cell], results: dict) -> list[str]:
             "reconstruction scores, the ceiling of each column.")
     if missing:
         text += " n/a on " + "; on ".join(missing) + "."
-    return [text]
+    notes = [text]
+    ceilings = list(dict.fromkeys(c.label for c in cells if c.clean))
+    if ceilings:
+        notes.append(f"`{'`, `'.join(ceilings)}`: the method trained on the scene's clean views at the same budget: "
+                     "what its field reaches here without rain, so the most a rain method on that field can "
+                     "reach. A rain method's gain over the plain field is bounded by the gap between the two, up to "
+                     "run-to-run noise.")
+    return notes
 
 
 def fusion_notes(cells: list[Cell], results: dict) -> list[str]:
@@ -226,6 +237,35 @@ def rain_table(cells: list[Cell], results: dict) -> str:
     return "\n".join(lines)
 
 
+def gap_table(cells: list[Cell], results: dict, prefix: str) -> str:
+    """Per method, per scene: its gain over the plain field it trains (PSNR, dB) out of the
+    gap between that field on the rainy and on the clean views (the ceiling row), and the
+    mean of both; "" without ceiling rows."""
+    done = _done(cells, results)
+    scenes = list(dict.fromkeys(c.scene for c in cells))
+    family = {c.label: b.family for c in cells if (b := _budget(c.key, results)) is not None}
+    plain = {family[c.label]: c.method for c in cells if c.clean and c.label in family}
+    psnr = {(c.label, c.scene): done[c.key]["summary"].get(f"{prefix}_psnr") for c in cells if c.key in done}
+    rows = []
+    for label in dict.fromkeys(c.label for c in cells if not c.clean):
+        base = plain.get(family.get(label))
+        if base is None or base == label:
+            continue
+        pairs = []
+        for sc in scenes:
+            m, b, top = psnr.get((label, sc)), psnr.get((base, sc)), psnr.get((f"{base}{CEILING}", sc))
+            pairs.append(None if None in (m, b, top) else (m - b, top - b))
+        known = [x for x in pairs if x is not None]
+        cols = ["n/a" if x is None else f"{x[0]:+.2f} / {x[1]:.2f}" for x in pairs]
+        mean = (f"{sum(g for g, _ in known) / len(known):+.2f} / {sum(t for _, t in known) / len(known):.2f}"
+                if len(known) == len(pairs) else "n/a")
+        rows.append("| " + " | ".join([f"{label} (over {base})"] + cols + [mean]) + " |")
+    if not rows:
+        return ""
+    head = ["Method"] + [f"{sc} gain / gap" for sc in scenes] + ["Average"]
+    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + rows)
+
+
 def markdown_report(cells: list[Cell], results: dict) -> str:
     main = [c for c in cells if not c.key.startswith("ablation/")]
     ablation = [c for c in cells if c.key.startswith("ablation/")]
@@ -240,6 +280,15 @@ def markdown_report(cells: list[Cell], results: dict) -> str:
                   markdown_table(main, results, "train"), ""]
         for note in oracle_notes(main, results) + fusion_notes(main, results) + budget_notes(main, results):
             parts += [note, ""]
+        gaps = [(split, gap_table(main, results, prefix)) for split, prefix in
+                (("training views", "train"), ("held-out views", "heldout"))]
+        if gaps[0][1]:
+            parts += ["## Gain over the plain field, out of the gap rain leaves (raw renders)", ""]
+            for split, table in gaps:
+                parts += [f"{split.capitalize()}:", "", table, ""]
+            parts += ["Each cell: the method's PSNR minus its plain field's (`nerf` or `3dgs` trained on the "
+                      "rainy views) / the same field on the clean views minus on the rainy views: the most a "
+                      "rain method on that field can gain at this budget.", ""]
         parts += ["## Novel views (held-out views)", "", markdown_table(main, results, "heldout"), ""]
         rain = rain_table(main, results)
         if rain:

@@ -11,6 +11,7 @@ image in natural order.
 from __future__ import annotations
 
 import csv
+import json
 import math
 import re
 from dataclasses import dataclass
@@ -128,6 +129,16 @@ def _check_values(path: Path, t: MayaCamerasTable, check_units: bool) -> None:
                         "Rotation columns must be in degrees, or pass check_units=false")
 
 
+def simulated_rain(root: Path) -> dict:
+    """What the simulator's ``scene.json`` says of the true rain that evaluation needs: the
+    number of directions it falls in (``mix`` > 0: two); {} for a folder rs-synth did not write."""
+    try:
+        rain = json.loads((root / "scene.json").read_text())["rain"]
+        return {"rain_directions": 2 if float(rain.get("mix", 0.0)) > 0 else 1}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
 def _match_images(csv_path: Path, folder: Path, names: list[str]) -> list[Path]:
     """Images for cameraShape1..N: by integer stem when every stem is an integer, else in order."""
     files = list_images(folder)
@@ -191,7 +202,8 @@ class MayaCsvParser(DataParser):
             cfg, name=root.resolve().name, source=root, images=images, cameras=cameras,
             image_names=[p.name for p in files], clean_images=clean, depths=depths, rain_layers=rain,
             points=points, point_colors=colors, near=near, far=far, image_files=files,
-            metadata={"format": "maya-csv", "world": "Maya, Y up", "cameras_csv": str(csv_path)})
+            metadata={"format": "maya-csv", "world": "Maya, Y up", "cameras_csv": str(csv_path),
+                      **simulated_rain(root)})
 
     def _image_dir(self, root: Path) -> Path:
         if self.config.images != "auto":

@@ -29,7 +29,7 @@ from torch import Tensor
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.eval.images import save_strip
 from rainyscape.eval.perceptual import LpipsMetric, load_lpips
-from rainyscape.eval.rain_stats import angle_options, view_rain_stats
+from rainyscape.eval.rain_stats import angle_options, true_rain_directions, view_rain_stats
 from rainyscape.eval.report import write_report
 from rainyscape.eval.summary import summarize
 from rainyscape.eval.views import ViewImages, progress, view_images
@@ -89,10 +89,10 @@ def fusion_controls(pipeline: Pipeline, v: ViewImages) -> dict[str, tuple[float,
 
 
 def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict,
-                 controls: dict[str, tuple[float, Tensor]] | None = None) -> dict:
+                 controls: dict[str, tuple[float, Tensor]] | None = None, true_directions: int = 1) -> dict:
     """One view's row of ``per_view``: its images against the clean and the rainy ones, the
     fusion controls (``controls``: post-process key -> (coverage, control image)), and its
-    rain statistics."""
+    rain statistics (``true_directions``: of the true rain, see :func:`view_rain_stats`)."""
     row: dict = {"view": v.name, "split": v.split,
                  "psnr_vs_rainy": float(psnr(v.rendered, v.rainy))}
     if v.clean is not None:
@@ -105,7 +105,7 @@ def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict,
                 row.update({f"{key}_random_{k}": x for k, x in image_metrics(img, v.clean, lpips).items()})
     for key, (coverage, _) in (controls or {}).items():
         row[f"{key}_coverage"] = coverage
-    row.update(view_rain_stats(v, angle_opts))
+    row.update(view_rain_stats(v, angle_opts, true_directions))
     return row
 
 
@@ -116,7 +116,7 @@ def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: i
     ``keep`` training views. With ``time_limit`` (seconds) no view starts that would, at the
     mean time a view has taken, end after it, except the first of each split."""
     lpips = lpips or load_lpips(pipeline.device)
-    options = angle_options(pipeline)
+    options, directions = angle_options(pipeline), true_rain_directions(pipeline)
     scene = pipeline.scene
     rows, kept = [], []
     if views is None:
@@ -130,7 +130,7 @@ def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: i
                 and any(r["split"] == split for r in rows)):
             continue
         v = view_images(pipeline, i)
-        rows.append(view_metrics(v, lpips, options, fusion_controls(pipeline, v)))
+        rows.append(view_metrics(v, lpips, options, fusion_controls(pipeline, v), directions))
         if v.split == "train" and len(kept) < keep:
             kept.append(v)
     return rows, kept

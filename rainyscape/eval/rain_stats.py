@@ -10,7 +10,7 @@ from torch import Tensor
 
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.eval.views import ViewImages
-from rainyscape.imaging.angles import estimate_rain_angles, streak_angle
+from rainyscape.imaging.angles import estimate_rain_angles, matched_angle_error_deg, streak_angle
 
 
 def angle_options(pipeline: Pipeline) -> dict:
@@ -22,6 +22,12 @@ def angle_options(pipeline: Pipeline) -> dict:
             return {"bins": o.bins, "threshold": o.threshold, "smoothing": o.smoothing,
                     "kernel": o.kernel, "k": int(o.top_k)}
     return {}
+
+
+def true_rain_directions(pipeline: Pipeline) -> int:
+    """How many directions the scene's true rain falls in (the simulator records it; 1 when
+    unknown)."""
+    return int(pipeline.scene.metadata.get("rain_directions", 1))
 
 
 def streak_angles_deg(image: Tensor, options: dict) -> list[float]:
@@ -46,9 +52,18 @@ def correlation(a: Tensor, b: Tensor) -> float | None:
     return float((x * y).sum()) / den if den > 0 else None
 
 
-def view_rain_stats(v: ViewImages, options: dict) -> dict:
-    """The rain keys of a view's metrics row (empty for views without predicted or true rain)."""
+def view_rain_stats(v: ViewImages, options: dict, true_directions: int = 1) -> dict:
+    """The rain keys of a view's metrics row (empty for views without predicted or true rain).
+    ``true_directions``: how many directions the true rain falls in (the simulator records it);
+    with two, the predicted rain's two strongest are matched to the true rain's two."""
     row: dict = {}
+    truth = None
+    if v.true_rain is not None and v.split == "train":
+        truth = streak_angles_deg(v.true_rain, {**options, "k": max(1, true_directions)})
+    if truth is not None:
+        row["rain_angle_true_deg"] = truth[0] if truth else None
+        if len(truth) > 1:
+            row["rain_angles_true_deg"] = truth
     if v.rain is not None:
         angles = streak_angles_deg(v.rain, options)  # strongest first
         row["rain_angle_deg"] = angles[0] if angles else None
@@ -57,6 +72,7 @@ def view_rain_stats(v: ViewImages, options: dict) -> dict:
         row["residual_angle_deg"] = streak_angle_deg(v.rainy - v.rendered, options)
         if v.true_rain is not None:
             row["rain_correlation"] = correlation(v.rain, v.true_rain)
-    if v.true_rain is not None and v.split == "train":
-        row["rain_angle_true_deg"] = streak_angle_deg(v.true_rain, options)
+        if truth:
+            predicted = streak_angles_deg(v.rain, {**options, "k": max(len(truth), options.get("k", 1))})
+            row["rain_angle_error_deg"] = matched_angle_error_deg(predicted, truth)
     return row

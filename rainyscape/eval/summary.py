@@ -3,10 +3,10 @@ for angles), keyed by split."""
 
 from __future__ import annotations
 
-from rainyscape.imaging.angles import angle_difference_deg, mean_angle_deg
+from rainyscape.imaging.angles import mean_angle_deg
 
 ANGLE_KEYS = ("rain_angle_deg", "residual_angle_deg", "rain_angle_true_deg")
-RAIN_KEYS = (*ANGLE_KEYS, "rain_correlation")  # training views only, kept without a split prefix
+RAIN_KEYS = (*ANGLE_KEYS, "rain_correlation", "rain_angle_error_deg")  # training views only, kept without a split prefix
 
 
 def mean_of(values: list) -> float | None:
@@ -33,8 +33,4 @@ def summarize(rows: list[dict]) -> dict[str, float]:
                 summary[k] = value
             else:
                 summary[f"{split}_{k}"] = value
-    pairs = [(r["rain_angle_deg"], r["rain_angle_true_deg"]) for r in rows
-             if r.get("rain_angle_deg") is not None and r.get("rain_angle_true_deg") is not None]
-    if pairs:
-        summary["rain_angle_error_deg"] = mean_of([angle_difference_deg(a, b) for a, b in pairs])
     return dict(sorted(summary.items()))

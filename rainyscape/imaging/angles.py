@@ -95,6 +95,23 @@ def angle_difference_deg(a: float, b: float) -> float:
     return min(d, 180.0 - d)
 
 
+def matched_angle_error_deg(predicted: list[float], true: list[float]) -> float | None:
+    """Mean error of each true streak direction against the predicted one paired with it
+    (degrees, period 180), over the pairing that fits best; None when either list is empty.
+
+    With one true direction only the strongest predicted one counts; with two (rain in two
+    directions of about equal strength), which of them is the dominant one is a coin flip
+    per view, so both are matched."""
+    if not predicted or not true:
+        return None
+    if len(true) == 1 or len(predicted) == 1:
+        return angle_difference_deg(predicted[0], true[0])
+    a, b = true[:2]
+    p, q = predicted[:2]
+    return min(angle_difference_deg(a, p) + angle_difference_deg(b, q),
+               angle_difference_deg(a, q) + angle_difference_deg(b, p)) / 2
+
+
 def mean_angle_deg(angles: list[float]) -> float | None:
     """Circular mean of undirected angles in degrees (period 180): average the doubled angles."""
     if not angles:

@@ -19,7 +19,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
-from rainyscape.cameras import Cameras, Window
+from rainyscape.cameras import Cameras, Window, pixel_rays
 from rainyscape.components import Callback, Field, ParamGroup, RenderOutput, TrainState
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
@@ -47,6 +47,37 @@ def growth_cap(max_gaussians: int, pixels_per_gaussian: int, train_pixels: int) 
     return min(caps, default=0)
 
 
+def init_mode(option: str, scene: SceneData) -> str:
+    """What ``field.init`` starts from on ``scene``: ``auto`` is the scene's sparse points when
+    it has them, else ``frustum`` for a forward-facing capture, else gsplat's ``random`` cube."""
+    has_points = scene.points is not None and len(scene.points) > 0
+    if option == "points" and not has_points:
+        raise ConfigError(f"field.init=points: scene {scene.name} has no sparse points; "
+                          "use field.init=auto, frustum or random")
+    if option != "auto":
+        return option
+    return "points" if has_points else "frustum" if scene.forward_facing else "random"
+
+
+def frustum_points(scene: SceneData, count: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """``count`` points inside the training views' frustums and their colours: each on the ray
+    of a random pixel of a random training view, at a z-depth uniform in disparity between the
+    scene's near and far bounds, coloured by that pixel. A forward-facing capture (LLFF)
+    without sparse points has its content there, not in a cube about its near-coincident
+    cameras."""
+    train = torch.tensor(scene.train_indices or list(range(scene.num_images)))
+    view = train[torch.randint(len(train), (count,), generator=generator)]
+    xs = torch.randint(scene.width, (count,), generator=generator)
+    ys = torch.randint(scene.height, (count,), generator=generator)
+    near, far = max(scene.near, 1e-3), max(scene.far, scene.near * 1.001, 2e-3)
+    disparity = 1.0 / far + (1.0 / near - 1.0 / far) * torch.rand(count, generator=generator)
+    rays = pixel_rays(scene.cameras[view], xs[:, None], ys[:, None])
+    depth = (1.0 / disparity)[:, None] / rays.z_scale  # z-depth -> distance along the ray
+    points = (rays.origins + rays.directions * depth[..., None])[:, 0].float()
+    colors = scene.images[view, ys, xs].float() / 255.0
+    return points, colors
+
+
 def nearest_neighbour_scale(points: Tensor, k: int = 3) -> Tensor:
     """Mean distance from each point to its k nearest others (3DGS's initial scale)."""
     from scipy.spatial import cKDTree
@@ -68,7 +99,8 @@ class GaussianField(Field):
     @dataclass
     class Config:
         sh_degree: int = bounded(3, 0, MAX_SH_DEGREE)
-        init: Literal["auto", "points", "random"] = "auto"  # auto: the scene's points if it has them
+        # auto: the scene's points if it has them, else frustum on forward-facing captures, else random
+        init: Literal["auto", "points", "frustum", "random"] = "auto"
         init_points: int = bounded(100_000, 0)  # at most this many of the scene's sparse points (random subset)
         random_points: int = bounded(100_000, 0)  # random Gaussians (gsplat: 100k) ...
         random_extent: float = bounded(3.0, 0.0)  # ... in a cube of this x the scene extent about the cameras' centroid (0: the scene box)
@@ -114,12 +146,8 @@ class GaussianField(Field):
             raise ConfigError(f"field.backend must be one of {', '.join(BACKENDS)}, got '{c.backend}'")
         if len(c.background) != 3:
             raise ConfigError("field.background needs three values (r, g, b)")
-        if c.init not in ("auto", "points", "random"):
-            raise ConfigError(f"field.init must be auto, points or random, got '{c.init}'")
-        has_points = scene.points is not None and len(scene.points) > 0
-        if c.init == "points" and not has_points:
-            raise ConfigError(f"field.init=points: scene {scene.name} has no sparse points; "
-                              "use field.init=auto or random")
+        if c.init not in ("auto", "points", "frustum", "random"):
+            raise ConfigError(f"field.init must be auto, points, frustum or random, got '{c.init}'")
         self.width, self.height = scene.width, scene.height
         train = scene.train_indices or list(range(scene.num_images))
         self.max_gaussians = growth_cap(c.max_gaussians, c.pixels_per_gaussian,
@@ -140,8 +168,8 @@ class GaussianField(Field):
         c = self.config
         gen = torch.Generator().manual_seed(c.seed)
         cap = self.max_gaussians or math.inf  # the growth cap bounds the start too
-        use_points = scene.points is not None and len(scene.points) > 0 and c.init != "random"
-        if use_points:
+        init = init_mode(c.init, scene)
+        if init == "points":
             points = scene.points.float()
             colors = (scene.point_colors.float() / 255.0 if scene.point_colors is not None
                       else torch.full_like(points, 0.5))
@@ -149,6 +177,8 @@ class GaussianField(Field):
             if len(points) > keep:
                 pick = torch.randperm(len(points), generator=gen)[:keep]
                 points, colors = points[pick], colors[pick]
+        elif init == "frustum":
+            points, colors = frustum_points(scene, max(1, int(min(c.random_points, cap))), gen)
         else:
             count = max(1, int(min(c.random_points, cap)))
             if c.random_extent > 0:  # gsplat: a cube of init_extent x the scene scale
