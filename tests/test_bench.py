@@ -87,10 +87,18 @@ def test_ablation_cells_and_table():
     assert "| w/o L_agr |" in report and "| full |" in report
 
 
-def test_fingerprint_changes_with_the_budget():
-    a = Cell("s/m", "s", "/d", "m", ["trainer.max_iters=10"])
-    b = Cell("s/m", "s", "/d", "m", ["trainer.max_iters=20"])
-    assert a.fingerprint() != b.fingerprint()
+def test_fingerprint_is_the_config_the_cell_trains(monkeypatch):
+    a = Cell("s/3dgs", "s", "/d", "3dgs", ["trainer.max_iters=10"])
+    b = Cell("s/3dgs", "s", "/d", "3dgs", ["trainer.max_iters=20"])
+    assert a.fingerprint() != b.fingerprint()  # another budget
+    same = Cell("s/3dgs", "s", "/d", "3dgs", ["trainer.max_iters=10", "field.sh_degree=3"])  # the default
+    assert same.fingerprint() == a.fingerprint()
+    # a method whose default changed is another experiment: its earlier result is not reused
+    from rainyscape.methods.gaussians import gaussians_3dgs
+
+    before = a.fingerprint()
+    monkeypatch.setattr(gaussians_3dgs.config.trainer, "seed", gaussians_3dgs.config.trainer.seed + 1)
+    assert a.fingerprint() != before
 
 
 @pytest.mark.slow

@@ -38,8 +38,14 @@ class Cell:
     clean: bool = False  # trained on the clean views: the field's ceiling at this budget
 
     def fingerprint(self) -> str:
-        """What makes two cells the same experiment (a changed budget reruns the cell)."""
-        text = json.dumps([self.data, self.method, sorted(self.overrides)])
+        """What makes two cells the same experiment: the scene and the whole config the cell
+        trains, so that a changed override, budget or method default reruns the cell rather
+        than reading back a run of another config."""
+        from rainyscape.config.yaml_io import to_dict
+
+        cfg = to_dict(cell_config(self))
+        cfg.pop("rainyscape_version", None)
+        text = json.dumps([self.data, cfg], sort_keys=True, default=str)
         return hashlib.sha1(text.encode()).hexdigest()[:12]
 
     @property

@@ -60,7 +60,6 @@ def view_rain_stats(v: ViewImages, options: dict, true_directions: int = 1) -> d
     truth = None
     if v.true_rain is not None and v.split == "train":
         truth = streak_angles_deg(v.true_rain, {**options, "k": max(1, true_directions)})
-    if truth is not None:
         row["rain_angle_true_deg"] = truth[0] if truth else None
         if len(truth) > 1:
             row["rain_angles_true_deg"] = truth
