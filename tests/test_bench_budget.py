@@ -15,7 +15,7 @@ from rainyscape.config import method_config
 from rainyscape.errors import ConfigError
 
 
-PAPER_PATCH = "phases.joint.patch_size=64"
+PAPER_PATCH = ("phases.joint.patches=1", "phases.joint.patch_size=64")  # one 64 x 64 patch
 
 
 def _budget(method: str, *overrides: str, size: int = 128) -> Budget:
@@ -27,10 +27,10 @@ def test_budgets_of_the_real_methods():
     assert (nerf.family, nerf.steps, nerf.pixels_per_step) == ("grid", 100, 1024)
     robust = _budget("robust-nerf")  # 16 x 16 patches with nerf's rays per step
     assert robust.family == "grid" and robust.same_as(nerf)
-    ours = _budget("rainyscape-nerf")  # warm-up: nerf's rays; joint: one 32 x 32 patch, as many
+    ours = _budget("rainyscape-nerf")  # warm-up: nerf's rays; joint: 16 patches of 8 x 8, as many
     assert [(p.name, p.steps, p.pixels) for p in ours.phases] == [("warmup", 50, 1024), ("joint", 50, 1024)]
     assert ours.same_as(nerf)
-    paper = _budget("rainyscape-nerf", PAPER_PATCH)  # the paper's 64 x 64 joint patch on nerf's warm-up
+    paper = _budget("rainyscape-nerf", *PAPER_PATCH)  # the paper's 64 x 64 joint patch on nerf's warm-up
     assert paper.pixels_per_step == 2560 and not paper.same_as(nerf)
     assert paper.describe() == "100 steps × 2560 px/step (warmup 50 × 1024, joint 50 × 4096)"
     gs = _budget("3dgs")  # whole views: width x height
@@ -46,7 +46,7 @@ def test_budgets_of_the_real_methods():
 
 def _table(*methods: str) -> list[tuple[str, str, Budget]]:
     """Cells on yard; rainyscape-nerf with the paper's joint patch (more rays than nerf's)."""
-    return [(f"yard/{m}", "yard", _budget(m, *([PAPER_PATCH] if m == "rainyscape-nerf" else []))) for m in methods]
+    return [(f"yard/{m}", "yard", _budget(m, *(PAPER_PATCH if m == "rainyscape-nerf" else ()))) for m in methods]
 
 
 def test_unequal_budgets_within_a_field_are_refused():
@@ -90,7 +90,8 @@ def test_budget_column_prints_the_difference():
 
 
 def test_rs_bench_refuses_unequal_budgets_before_anything_runs(tmp_path):
-    done = subprocess.run(["rs-bench", "scenes=cpu", "methods=nerf,rainyscape-nerf", "iters=5", f"rainyscape-nerf:{PAPER_PATCH}",
+    done = subprocess.run(["rs-bench", "scenes=cpu", "methods=nerf,rainyscape-nerf", "iters=5",
+                           *(f"rainyscape-nerf:{o}" for o in PAPER_PATCH),
                            f"out={tmp_path}"],
                           capture_output=True, text=True)
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
