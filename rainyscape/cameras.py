@@ -97,9 +97,10 @@ class Cameras:
         return Cameras(self.c2w.clone(), self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, w, h)
 
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
-        """Project world points (P, 3) into every camera: pixels (N, P, 2) and depths (N, P)."""
+        """Project world points into the cameras: pixels (N, P, 2) and depths (N, P). ``points``
+        (P, 3) go into every camera; (N, P, 3) are camera n's own points."""
         w2c = self.w2c()
-        cam = points[None] @ w2c[:, :3, :3].transpose(1, 2) + w2c[:, None, :3, 3]
+        cam = (points if points.dim() == 3 else points[None]) @ w2c[:, :3, :3].transpose(1, 2) + w2c[:, None, :3, 3]
         z = cam[..., 2]
         u = self.fx[:, None] * cam[..., 0] / z + self.cx[:, None]
         v = self.fy[:, None] * cam[..., 1] / z + self.cy[:, None]

@@ -44,17 +44,10 @@ def neighbour_colours(points: Tensor, neighbours: Tensor, cameras: Cameras, imag
     b, h, w, _ = points.shape
     k = neighbours.shape[1]
     height, width = images.shape[-2:]
-    flat = points.reshape(b, 1, h * w, 3)
-    cams = cameras[neighbours.reshape(-1)]
-    w2c = cams.w2c().reshape(b, k, 4, 4)
-    cam = flat @ w2c[..., :3, :3].transpose(-1, -2) + w2c[..., None, :3, 3]  # (B, k, P, 3)
-    z = cam[..., 2]
-    fx, fy = cams.fx.reshape(b, k, 1), cams.fy.reshape(b, k, 1)
-    cx, cy = cams.cx.reshape(b, k, 1), cams.cy.reshape(b, k, 1)
-    safe = z.clamp_min(1e-6)
-    u = fx * cam[..., 0] / safe + cx
-    v = fy * cam[..., 1] / safe + cy
-    grid = torch.stack([u / width * 2 - 1, v / height * 2 - 1], -1)  # align_corners=False
+    flat = points.reshape(b, 1, h * w, 3).expand(b, k, h * w, 3)
+    uv, z = cameras[neighbours.reshape(-1)].project(flat.reshape(b * k, h * w, 3))  # (B k, P, 2)
+    uv, z = uv.reshape(b, k, h * w, 2), z.reshape(b, k, h * w)
+    grid = uv / uv.new_tensor([width, height]) * 2 - 1  # align_corners=False
     valid = (z > 1e-6) & (grid.abs() < 1).all(-1) & torch.isfinite(flat[..., 0])
     grid = torch.where(valid[..., None], grid, torch.zeros_like(grid))
     sampled = F.grid_sample(images[neighbours.reshape(-1)], grid.reshape(b * k, h * w, 1, 2),
