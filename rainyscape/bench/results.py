@@ -9,6 +9,7 @@ import platform
 from pathlib import Path
 
 from rainyscape.errors import ConfigError
+from rainyscape.formats.atomic import write_text_atomic
 
 
 def machine_description() -> dict:
@@ -38,6 +39,4 @@ def load_results(path: Path) -> dict:
 
 def save_results(path: Path, results: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(results, indent=2))
-    tmp.replace(path)
+    write_text_atomic(path, json.dumps(results, indent=2))

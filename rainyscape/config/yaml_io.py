@@ -10,6 +10,7 @@ from rainyscape import __version__
 from rainyscape.config.schema import (ComponentConfig, LossConfig, PhaseConfig, PipelineConfig,
                                       TrainerConfig, build_dataclass, is_materialized, materialize)
 from rainyscape.errors import ConfigError
+from rainyscape.formats.atomic import write_text_atomic
 
 _LOSS_GENERIC = ("weight", "phases", "detach")
 
@@ -95,10 +96,7 @@ def save_yaml(cfg: PipelineConfig, path: Path) -> None:
     """Write ``config.yml`` atomically (a temporary file renamed in place)."""
     import yaml
 
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
-    tmp.replace(path)
+    write_text_atomic(Path(path), yaml.safe_dump(to_dict(cfg), sort_keys=False))
 
 
 def load_yaml(path: Path) -> PipelineConfig:

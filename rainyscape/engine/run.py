@@ -31,6 +31,7 @@ from rainyscape.engine.run_dir import new_run_dir
 from rainyscape.engine.snapshot import restore_models
 from rainyscape.engine.trainer import Trainer, seed_everything
 from rainyscape.errors import ConfigError, DataError, RainyScapeError
+from rainyscape.formats.atomic import write_text_atomic
 
 
 @dataclass
@@ -69,9 +70,7 @@ def write_status(run_dir: Path, state: str, **extra) -> None:
     data = {"state": state, "time": time.strftime("%Y-%m-%d %H:%M:%S"), **extra}
     if state == "running":
         data.update(pid=os.getpid(), host=socket.gethostname())
-    tmp = Path(run_dir) / "status.json.tmp"
-    tmp.write_text(json.dumps(data, indent=2))
-    tmp.replace(Path(run_dir) / "status.json")
+    write_text_atomic(Path(run_dir) / "status.json", json.dumps(data, indent=2))
 
 
 def read_status(run_dir: Path) -> dict:
@@ -91,9 +90,7 @@ def read_status(run_dir: Path) -> dict:
                   "note": f"the training process ({owner}) ended without recording its end "
                           "(killed or crashed); resume with rs-train resume=RUN_DIR"}
         try:
-            tmp = path.with_suffix(".json.tmp")
-            tmp.write_text(json.dumps(status, indent=2))
-            tmp.replace(path)
+            write_text_atomic(path, json.dumps(status, indent=2))
         except OSError:
             pass
     return status

@@ -31,6 +31,7 @@ from rainyscape.engine.pipeline import Pipeline, compute_losses
 from rainyscape.engine.progress import ProgressBar
 from rainyscape.engine.sampling import MAX_WHOLE_IMAGE_PIXELS, batch_count, gather_pixels, sample_windows
 from rainyscape.errors import DataError, RainyScapeError
+from rainyscape.formats.atomic import write_text_atomic
 from rainyscape.imaging.metrics import psnr
 
 
@@ -230,9 +231,7 @@ class Trainer:
                 kept.append(line)
             changed |= not keep
         if changed:
-            tmp = self.log_path.with_suffix(".jsonl.tmp")
-            tmp.write_text("".join(f"{line}\n" for line in kept))
-            tmp.replace(self.log_path)
+            write_text_atomic(self.log_path, "".join(f"{line}\n" for line in kept))
 
     def _announce_batches(self) -> None:
         for name, phase in self.p.config.phases.items():

@@ -33,6 +33,7 @@ from rainyscape.eval.rain_stats import angle_options, true_rain_directions, view
 from rainyscape.eval.report import write_report
 from rainyscape.eval.summary import summarize
 from rainyscape.eval.views import ViewImages, progress, view_images
+from rainyscape.formats.atomic import write_text_atomic
 from rainyscape.imaging.metrics import psnr, ssim
 from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion, fuse, rain_mask
 
@@ -175,9 +176,7 @@ def write_metrics(run_dir: Path, metrics: dict) -> Path:
     A report that cannot be written is reported on stderr and does not fail the run (the
     metrics are safe; ``rs-eval RUN_DIR`` rebuilds it)."""
     path = Path(run_dir) / "metrics.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(metrics, indent=2))
-    tmp.replace(path)
+    write_text_atomic(path, json.dumps(metrics, indent=2))
     try:
         write_report(run_dir)
     except Exception as exc:  # the report is a view of the metrics; never lose a run over it

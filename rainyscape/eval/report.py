@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 from rainyscape.errors import RainyScapeError
+from rainyscape.formats.atomic import write_text_atomic
 
 METRICS = ("psnr", "ssim", "lpips")
 MAX_STRIPS = 6  # comparison strips shown (rs-render writes one per view under renders/strips)
@@ -289,8 +290,4 @@ def build_report(run_dir: Path) -> str:
 
 
 def write_report(run_dir: Path) -> Path:
-    path = Path(run_dir) / "report.html"
-    tmp = path.with_suffix(".html.tmp")
-    tmp.write_text(build_report(run_dir), encoding="utf-8")
-    tmp.replace(path)
-    return path
+    return write_text_atomic(Path(run_dir) / "report.html", build_report(run_dir))
