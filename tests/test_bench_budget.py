@@ -149,3 +149,25 @@ def test_every_recipe_builds_and_a_field_family_shares_one_budget(profile):
         first = budgets[methods[0]]
         assert first.family == family
         assert all(budgets[m].same_as(first) for m in methods), {m: budgets[m].describe() for m in methods}
+
+
+def test_region_table_splits_each_render_into_rain_and_dry_pixels():
+    from rainyscape.bench.tables import region_table
+
+    cells = build_cells(["3dgs", "rainyscape-3dgs"], [("yard", "/y"), ("plaza", "/p")], [], ceiling=["3dgs"])
+    # the ceiling trains on the clean views: its "input" is exact (PSNR capped at 120 dB)
+    s = {"yard/3dgs on clean views": {"rainy_input_psnr_in_rain": 120.0, "train_psnr_in_rain": 31.0,
+                                      "train_psnr_dry": 32.0},
+         "yard/3dgs": {"rainy_input_psnr_in_rain": 13.0, "train_psnr_in_rain": 20.0, "train_psnr_dry": 30.0},
+         "plaza/3dgs": {"rainy_input_psnr_in_rain": 11.0, "train_psnr_in_rain": 18.0, "train_psnr_dry": 28.0},
+         "yard/rainyscape-3dgs": {"train_psnr_in_rain": 22.0, "train_psnr_dry": 29.0},
+         "plaza/rainyscape-3dgs": {"train_psnr_in_rain": 23.0}}
+    results = {"cells": {k: {"status": "finished", "summary": v} for k, v in s.items()}}
+    table = region_table(cells, results).splitlines()
+    assert table[0] == "| Method | yard in rain / dry | plaza in rain / dry | Average |"
+    assert table[2] == "| rainy input | 13.00 | 11.00 | 12.00 |"
+    assert table[3] == "| 3dgs on clean views | 31.00 / 32.00 | n/a | n/a |"
+    assert table[4] == "| 3dgs | 20.00 / 30.00 | 18.00 / 28.00 | 19.00 / 29.00 |"
+    assert table[5] == "| rainyscape-3dgs | 22.00 / 29.00 | 23.00 | 22.50 |"  # a dry value missing
+    assert region_table(cells, {"cells": {k: {"status": "finished", "summary": {"train_psnr": 1.0}}
+                                          for k in s}}) == ""

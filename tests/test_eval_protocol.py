@@ -24,6 +24,9 @@ def test_every_field_of_the_protocol(tmp_path):
     known = -10 * math.log10(OFFSET ** 2)
     assert s["train_psnr"] == pytest.approx(known, abs=0.05)
     assert s["heldout_psnr"] == pytest.approx(known, abs=0.05)
+    for key in ("train_psnr_in_rain", "train_psnr_dry", "heldout_psnr_in_rain", "heldout_psnr_dry"):
+        assert s[key] == pytest.approx(known, abs=0.05)  # the render is off by OFFSET everywhere
+    assert s["rainy_input_psnr_in_rain"] < s["rainy_input_psnr"]  # the input errs only there
     scene = pipe.scene
     rainy = scene.images[scene.train_indices].permute(0, 3, 1, 2).float() / 255
     clean = scene.clean_images[scene.train_indices].permute(0, 3, 1, 2).float() / 255
@@ -146,3 +149,27 @@ def test_the_simulator_records_how_many_directions_its_rain_falls_in(tmp_path, t
     assert simulated_rain(tmp_path) == {"rain_directions": 2}
     (tmp_path / "scene.json").write_text("{not json")
     assert simulated_rain(tmp_path) == {} and simulated_rain(tmp_path / "absent") == {}
+
+
+def test_psnr_in_rain_and_on_dry_pixels():
+    """The render's error on the pixels the true rain covers and on the others, separately:
+    an error of 0.1 under the rain and 0.01 elsewhere reads 20 dB and 40 dB."""
+    from rainyscape.eval.perceptual import LpipsMetric
+    from rainyscape.eval.protocol import view_metrics
+    from rainyscape.eval.views import ViewImages
+
+    clean = torch.full((3, 8, 8), 0.5)
+    true_rain = torch.zeros(3, 8, 8)
+    true_rain[1, :, 2] = 0.3  # one streak, one channel is enough
+    wet = true_rain.amax(0) > 0
+    rendered = clean + torch.where(wet, 0.1, 0.01)
+    fused = torch.where(wet, rendered, clean)
+    v = ViewImages(0, "v", "train", clean + true_rain, rendered, None, clean=clean, true_rain=true_rain,
+                   post={"fusion": fused})
+    row = view_metrics(v, LpipsMetric(None, "not needed"), {})
+    assert row["psnr_in_rain"] == pytest.approx(20.0, abs=1e-3)
+    assert row["psnr_dry"] == pytest.approx(40.0, abs=1e-3)
+    assert row["rainy_input_psnr_in_rain"] == pytest.approx(-10 * math.log10(0.3 ** 2 / 3), abs=1e-3)
+    assert row["fusion_psnr_in_rain"] == pytest.approx(20.0, abs=1e-3) and row["fusion_psnr_dry"] == 120.0
+    dry = ViewImages(0, "v", "heldout", clean, rendered, None, clean=clean, true_rain=torch.zeros(3, 8, 8))
+    assert view_metrics(dry, LpipsMetric(None, "not needed"), {})["psnr_in_rain"] is None

@@ -237,6 +237,45 @@ def rain_table(cells: list[Cell], results: dict) -> str:
     return "\n".join(lines)
 
 
+def region_table(cells: list[Cell], results: dict) -> str:
+    """Per method and scene, training views: the render's PSNR on the pixels the true rain
+    covers / on the others (the rainy input's row: on the rain pixels only, it is exact
+    elsewhere), and their means; "" when no cell has them."""
+    done = _done(cells, results)
+    scenes = list(dict.fromkeys(c.scene for c in cells))
+    summary = {(c.label, c.scene): done[c.key]["summary"] for c in cells if c.key in done}
+    rainy = {}  # the input's rain pixels, from any cell trained on the rainy views
+    for c in cells:
+        if not c.clean and (c.label, c.scene) in summary:
+            rainy.setdefault(c.scene, summary[(c.label, c.scene)].get("rainy_input_psnr_in_rain"))
+    rows = [(INPUT, {sc: (rainy.get(sc), None) for sc in scenes})]
+    rows += [(label, {sc: (summary.get((label, sc), {}).get("train_psnr_in_rain"),
+                           summary.get((label, sc), {}).get("train_psnr_dry")) for sc in scenes})
+             for label in dict.fromkeys(c.label for c in cells)]
+    lines = []
+    for label, values in rows:
+        if all(wet is None for wet, _ in values.values()):
+            continue
+        wets, drys = zip(*values.values())
+        cols = [_region(wet, dry) for wet, dry in zip(wets, drys)]
+        lines.append("| " + " | ".join([label] + cols + [_region(_mean_of_all(wets), _mean_of_all(drys))]) + " |")
+    if len(lines) < 2:
+        return ""
+    head = ["Method"] + [f"{sc} in rain / dry" for sc in scenes] + ["Average"]
+    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + lines)
+
+
+def _mean_of_all(values) -> float | None:
+    """The mean, or None when a value is missing."""
+    return None if any(v is None for v in values) else sum(values) / len(values)
+
+
+def _region(wet: float | None, dry: float | None) -> str:
+    if wet is None:
+        return "n/a"
+    return f"{wet:.2f}" if dry is None else f"{wet:.2f} / {dry:.2f}"
+
+
 def gap_table(cells: list[Cell], results: dict, prefix: str) -> str:
     """Per method, per scene: its gain over the plain field it trains (PSNR, dB) out of the
     gap between that field on the rainy and on the clean views (the ceiling row), and the
@@ -289,6 +328,13 @@ def markdown_report(cells: list[Cell], results: dict) -> str:
             parts += ["Each cell: the method's PSNR minus its plain field's (`nerf` or `3dgs` trained on the "
                       "rainy views) / the same field on the clean views minus on the rainy views: the most a "
                       "rain method on that field can gain at this budget.", ""]
+        regions = region_table(main, results)
+        if regions:
+            parts += ["## Where the renders err: pixels in rain and dry pixels (training views, PSNR)", "",
+                      regions, "",
+                      "Each cell: the raw render's PSNR against the clean view on the pixels the true rain "
+                      "covers (any channel above 0.02) / on the other pixels. Rain left in the render "
+                      "lowers the first; a rain method that degrades the rest of the scene lowers the second.", ""]
         parts += ["## Novel views (held-out views)", "", markdown_table(main, results, "heldout"), ""]
         rain = rain_table(main, results)
         if rain:

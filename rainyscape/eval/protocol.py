@@ -13,6 +13,10 @@ the predicted rain layer correlates with the true one.
                                   that the control also shows comes from copying the input
   heldout_{psnr,ssim,lpips}       renders at held-out views vs clean (novel views)
   {train,heldout}_psnr_vs_rainy   renders vs the rainy images (how much rain was fitted)
+  {train,heldout}_psnr_{in_rain,dry}, train_<pp>_psnr_{in_rain,dry}, rainy_input_psnr_in_rain
+                                  simulated scenes: PSNR vs clean on the pixels the true rain
+                                  covers (any channel above RAIN_PIXEL) and on the others: is
+                                  what a method loses rain left in, or the rest of the scene?
   rain_angle_deg, rain_angle_true_deg, rain_angle_error_deg, rain_correlation
 """
 
@@ -34,11 +38,12 @@ from rainyscape.eval.report import write_report
 from rainyscape.eval.summary import summarize
 from rainyscape.eval.views import ViewImages, progress, view_images
 from rainyscape.formats.atomic import write_text_atomic
-from rainyscape.imaging.metrics import psnr, ssim
+from rainyscape.imaging.metrics import masked_psnr, psnr, ssim
 from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion, fuse, rain_mask
 
 STRIP_VIEWS = 3  # training views whose comparison strips evaluation saves for the report
 CONTROL_SEED = 7919  # the random-mask control of view i uses seed CONTROL_SEED + i
+RAIN_PIXEL = 0.02  # a pixel is "in rain" where the true rain layer exceeds this (about 5 / 255)
 
 
 def image_metrics(pred: Tensor, target: Tensor, lpips: LpipsMetric) -> dict[str, float]:
@@ -47,6 +52,11 @@ def image_metrics(pred: Tensor, target: Tensor, lpips: LpipsMetric) -> dict[str,
     if lpips.available:
         out["lpips"] = float(lpips.fn(pred[None], target[None])[0])
     return out
+
+
+def region_psnr(pred: Tensor, clean: Tensor, wet: Tensor) -> dict[str, float | None]:
+    """PSNR of a (3, H, W) image vs clean on the pixels in rain (``wet``, (H, W)) and the others."""
+    return {"psnr_in_rain": masked_psnr(pred, clean, wet), "psnr_dry": masked_psnr(pred, clean, ~wet)}
 
 
 def fusion_mask(post, rendered: Tensor, rain: Tensor, rainy: Tensor) -> Tensor | None:
@@ -106,6 +116,13 @@ def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict,
                 row.update({f"{key}_random_{k}": x for k, x in image_metrics(img, v.clean, lpips).items()})
     for key, (coverage, _) in (controls or {}).items():
         row[f"{key}_coverage"] = coverage
+    if v.clean is not None and v.true_rain is not None:
+        wet = v.true_rain.amax(0) > RAIN_PIXEL
+        row.update(region_psnr(v.rendered, v.clean, wet))
+        if v.split == "train":  # the input is exact on dry pixels: only its rain counts
+            row["rainy_input_psnr_in_rain"] = region_psnr(v.rainy, v.clean, wet)["psnr_in_rain"]
+            for key, img in v.post.items():
+                row.update({f"{key}_{k}": x for k, x in region_psnr(img, v.clean, wet).items()})
     row.update(view_rain_stats(v, angle_opts, true_directions))
     return row
 
