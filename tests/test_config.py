@@ -48,6 +48,10 @@ def test_loss_terms_can_be_dropped_and_added():
     cfg = config.method_config("toy", ["losses.mean-abs=none", "losses.mean-abs.weight=2"])
     assert cfg.losses["mean-abs"].weight == 2.0
     assert cfg.losses["mean-abs"].phases == ("warmup", "joint")  # the loss class's defaults
+    # a term under a key of its own: the loss its name override names
+    cfg = config.method_config("toy", ["losses.second.name=mean-abs", "losses.second.weight=3"])
+    assert cfg.losses["second"].name == "mean-abs" and cfg.losses["second"].weight == 3.0
+    assert cfg.losses["mean-abs"].weight == 1.0  # the method's own term is untouched
 
 
 @pytest.mark.parametrize("override, message", [

@@ -2,7 +2,8 @@
 
 Keys: ``data``, ``dataparser[.KEY]``, ``field[.KEY]``, ``rain_head[.KEY]`` (``=none`` drops
 it), ``phases.PHASE.KEY``, ``losses.TERM.{weight,phases,detach,name,KEY}`` (``=none`` drops a
-term; a new TERM adds that loss), ``postprocess.NAME[.KEY]`` (``=on|none``), ``trainer.KEY``.
+term; a new TERM adds that loss, or the loss ``losses.TERM.name`` names),
+``postprocess.NAME[.KEY]`` (``=on|none``), ``trainer.KEY``.
 """
 
 from __future__ import annotations
@@ -133,9 +134,11 @@ def _override_loss(cfg: PipelineConfig, parts: list[str], value: str, key: str) 
         raise ConfigError(f"{key}: expected losses.TERM.OPTION=value (or losses.TERM=none)")
     term, opt = parts[1], parts[2]
     if term not in cfg.losses:
-        # A new term: TERM must be a registered loss (its default phases apply).
-        comp = materialize_component("loss", ComponentConfig(term, {}), f"losses.{term}")
-        cfg.losses[term] = LossConfig(term, weight=1.0, phases=default_phases(term, list(cfg.phases)),
+        # A new term: the loss named by losses.TERM.name=LOSS, or else TERM itself (its
+        # default phases apply).
+        name = value if opt == "name" else term
+        comp = materialize_component("loss", ComponentConfig(name, {}), f"losses.{term}")
+        cfg.losses[term] = LossConfig(name, weight=1.0, phases=default_phases(name, list(cfg.phases)),
                                       options=comp.options)
     loss = cfg.losses[term]
     if opt == "name":
