@@ -57,6 +57,16 @@ def test_total_variation_by_hand():
     assert float(TotalVariation()(_ctx(b, b, None))) == pytest.approx(6 / 4)
 
 
+def test_capped_total_variation_leaves_strong_edges_alone():
+    b = torch.tensor([[[[0.0, 1.0], [3.0, 3.0]]]], requires_grad=True)
+    capped = TotalVariation(TotalVariation.Config(cap=1.5))
+    loss = capped(_ctx(b, b, None))
+    assert float(loss.detach()) == pytest.approx((1 + 0 + 1.5 + 1.5) / 4)  # |dy| 3 and 2 count 1.5
+    loss.backward()
+    # only the weak step (0 -> 1 along the top row) pulls; the strong vertical ones do not
+    assert b.grad.flatten().tolist() == pytest.approx([-0.25, 0.25, 0.0, 0.0])
+
+
 def test_directional_derivative_of_a_ramp():
     ramp = (torch.arange(5.0) * 0.1).expand(1, 1, 5, 5)  # +0.1 per column
     for kernel in ("scharr", "sobel"):
