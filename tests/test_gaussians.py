@@ -434,3 +434,15 @@ def test_rainyscape_3dgs_trains_whole_views_and_updates_latents_on_a_crop(tiny_s
     # 9 joint steps: one whole-view prediction, then 5 latent steps on 16 x 16 crops each
     assert seen == [size, *[(16, 16)] * 5] * 9
     assert not torch.equal(pipe.rain_head.view_states.detach(), views)
+
+
+def test_rainyscape_plus_is_rainyscape_3dgs_with_multiview_rain_and_capped_tv():
+    plus, paper = method_config("rainyscape-plus", []), method_config("rainyscape-3dgs", [])
+    assert set(plus.losses) - set(paper.losses) == {"multiview-rain"}
+    assert plus.losses["multiview-rain"].name == "mv-rain"
+    assert plus.losses["tv"].options.cap == 0.1 and paper.losses["tv"].options.cap == 0.0
+    for key in paper.losses:
+        if key != "tv":
+            assert plus.losses[key] == paper.losses[key], key
+    assert (plus.field, plus.rain_head, plus.phases, plus.trainer) == \
+        (paper.field, paper.rain_head, paper.phases, paper.trainer)
