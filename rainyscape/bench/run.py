@@ -19,6 +19,7 @@ from rainyscape.bench.results import load_results, machine_description, save_res
 from rainyscape.bench.scenes import resolve_scene
 from rainyscape.bench.tables import markdown_report
 from rainyscape.errors import ConfigError
+from rainyscape.formats.atomic import write_text_atomic
 
 
 def _oracle_job(folder: str, cell: Cell) -> dict:
@@ -81,16 +82,17 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
                     "budgets": {k: b.to_dict() for k, b in budgets.items()},
                     "budget_mismatches": [m.describe() for m in plan.mismatches]})
     update_oracles(cells, results, opts.jobs, lambda: save_results(json_path, results))
+    prints = {c.key: c.fingerprint() for c in cells}  # each builds the cell's whole config
     todo = []
     for n, cell in enumerate(cells, 1):
         prev = results["cells"].get(cell.key, {})
-        if prev.get("status") == "finished" and prev.get("fingerprint") == cell.fingerprint():
+        if prev.get("status") == "finished" and prev.get("fingerprint") == prints[cell.key]:
             print(f"[{n}/{len(cells)}] {cell.key}: done earlier, skipped", flush=True)
         else:
             todo.append((n, cell))
 
     def run(n: int, cell: Cell) -> dict:
-        folder = out / "runs" / name / f"{cell.folder_name}-{cell.fingerprint()}"
+        folder = out / "runs" / name / f"{cell.folder_name}-{prints[cell.key]}"
         print(f"[{n}/{len(cells)}] {cell.key}: running (log: {folder / 'bench.log'})", flush=True)
         return run_cell_subprocess(cell, folder, opts.device, threads)
 
@@ -102,13 +104,13 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
         for future in as_completed(running):
             n, cell = running[future]
             result = future.result()
-            result.update({"fingerprint": cell.fingerprint(), "method": cell.method, "scene": cell.scene,
+            result.update({"fingerprint": prints[cell.key], "method": cell.method, "scene": cell.scene,
                            "label": cell.label, "overrides": cell.overrides,
                            "budget": budgets[cell.key].to_dict()})
             results["cells"][cell.key] = result
             results["updated"] = time.strftime("%Y-%m-%d %H:%M:%S")
             save_results(json_path, results)
-            md_path.write_text(markdown_report(cells, results))
+            write_text_atomic(md_path, markdown_report(cells, results))
             if result["status"] == "finished":
                 s = result["summary"]
                 print(f"[{n}/{len(cells)}] {cell.key}: PSNR {s.get('train_psnr', float('nan')):.2f} dB, "
@@ -119,5 +121,5 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
                 print(f"[{n}/{len(cells)}] {cell.key}: FAILED: {result['error']}", flush=True)
     results["updated"] = time.strftime("%Y-%m-%d %H:%M:%S")
     save_results(json_path, results)
-    md_path.write_text(markdown_report(cells, results))
+    write_text_atomic(md_path, markdown_report(cells, results))
     return json_path, md_path, failed

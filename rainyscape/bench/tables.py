@@ -43,9 +43,25 @@ def _fmt(value: float | None, metric: str, signed: bool = False) -> str:
     return f"{value:{sign}.2f}" if metric == "psnr" else f"{value:{sign}.3f}"
 
 
+def _markdown(head: list[str], rows: list[list[str]]) -> str:
+    """A markdown table: the header, its rule, then the rows."""
+    rule = "|" + "---|" * len(head)
+    return "\n".join(["| " + " | ".join(head) + " |", rule] + ["| " + " | ".join(r) + " |" for r in rows])
+
+
 def _done(cells: list[Cell], results: dict) -> dict[str, dict]:
     return {c.key: results["cells"][c.key] for c in cells
             if results["cells"].get(c.key, {}).get("status") == "finished"}
+
+
+def input_summaries(cells: list[Cell], done: dict[str, dict]) -> dict[str, dict]:
+    """Per scene, the summary of the first finished cell trained on the rainy views: it holds
+    the rainy input's metrics (a ceiling cell's "input" is the clean views)."""
+    out: dict[str, dict] = {}
+    for c in cells:
+        if not c.clean and c.key in done and any(k.startswith("rainy_input_") for k in done[c.key]["summary"]):
+            out.setdefault(c.scene, done[c.key]["summary"])
+    return out
 
 
 def table_rows(cells: list[Cell], results: dict, prefix: str) -> list[Row]:
@@ -59,12 +75,8 @@ def table_rows(cells: list[Cell], results: dict, prefix: str) -> list[Row]:
     rows = [Row(ORACLE, {s: {m: oracle[s][split].get(m) for m in METRICS} for s in scenes
                          if oracle.get(s, {}).get("available") and split in oracle[s]}, kind="oracle")]
     if prefix == "train":
-        floor = {}
-        for s in scenes:
-            found = [r for c in cells if c.scene == s and not c.clean and (r := done.get(c.key))
-                     and "rainy_input_psnr" in r["summary"]]
-            if found:
-                floor[s] = {m: found[0]["summary"].get(f"rainy_input_{m}") for m in METRICS}
+        floor = {s: {m: summary.get(f"rainy_input_{m}") for m in METRICS}
+                 for s, summary in input_summaries(cells, done).items()}
         rows.append(Row(INPUT, floor, kind="input"))
     for label in dict.fromkeys(c.label for c in cells):
         mine = [c for c in cells if c.label == label and c.key in done]
@@ -129,7 +141,7 @@ def markdown_table(cells: list[Cell], results: dict, prefix: str) -> str:
     cols = scenes + (["Average"] if len(scenes) > 1 else [])
     head = ["Method"] + [f"{s} {m.upper()} {'↓' if m == 'lpips' else '↑'}" for s in cols for m in METRICS]
     head += ["Budget (steps × px/step)", "Train time (s)", "Peak memory (MiB)"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = []
     budgets = budget_column(cells, results)
     for row in table_rows(cells, results, prefix):
         signed = row.kind == "gain"
@@ -147,8 +159,8 @@ def markdown_table(cells: list[Cell], results: dict, prefix: str) -> str:
                        f"{mem:.0f}" if row.runs else "–"]
         else:
             values += ["–", "–", "–"]
-        lines.append("| " + " | ".join([row.label] + values) + " |")
-    return "\n".join(lines)
+        lines.append([row.label] + values)
+    return _markdown(head, lines)
 
 
 def oracle_notes(cells: list[Cell], results: dict) -> list[str]:
@@ -225,7 +237,7 @@ def rain_table(cells: list[Cell], results: dict) -> str:
     if not methods:
         return ""
     head = ["Method"] + [f"{sc} corr ↑ / angle err ↓" for sc in scenes] + ["Average"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = []
     for m in methods:
         pairs = [(s.get("rain_correlation"), s.get("rain_angle_error_deg"))
                  for s in (done.get(f"{sc}/{m}", {}).get("summary", {}) for sc in scenes)]
@@ -233,8 +245,8 @@ def rain_table(cells: list[Cell], results: dict) -> str:
         known = [(r, a) for r, a in pairs if r is not None and a is not None]
         mean = (f"{sum(r for r, _ in known) / len(known):.2f} / {sum(a for _, a in known) / len(known):.1f}°"
                 if known else "n/a")
-        lines.append("| " + " | ".join([m] + cols + [mean]) + " |")
-    return "\n".join(lines)
+        lines.append([m] + cols + [mean])
+    return _markdown(head, lines)
 
 
 def region_table(cells: list[Cell], results: dict) -> str:
@@ -244,11 +256,8 @@ def region_table(cells: list[Cell], results: dict) -> str:
     done = _done(cells, results)
     scenes = list(dict.fromkeys(c.scene for c in cells))
     summary = {(c.label, c.scene): done[c.key]["summary"] for c in cells if c.key in done}
-    rainy = {}  # the input's rain pixels, from any cell trained on the rainy views
-    for c in cells:
-        if not c.clean and (c.label, c.scene) in summary:
-            rainy.setdefault(c.scene, summary[(c.label, c.scene)].get("rainy_input_psnr_in_rain"))
-    rows = [(INPUT, {sc: (rainy.get(sc), None) for sc in scenes})]
+    rainy = input_summaries(cells, done)
+    rows = [(INPUT, {sc: (rainy.get(sc, {}).get("rainy_input_psnr_in_rain"), None) for sc in scenes})]
     rows += [(label, {sc: (summary.get((label, sc), {}).get("train_psnr_in_rain"),
                            summary.get((label, sc), {}).get("train_psnr_dry")) for sc in scenes})
              for label in dict.fromkeys(c.label for c in cells)]
@@ -258,11 +267,10 @@ def region_table(cells: list[Cell], results: dict) -> str:
             continue
         wets, drys = zip(*values.values())
         cols = [_region(wet, dry) for wet, dry in zip(wets, drys)]
-        lines.append("| " + " | ".join([label] + cols + [_region(_mean_of_all(wets), _mean_of_all(drys))]) + " |")
+        lines.append([label] + cols + [_region(_mean_of_all(wets), _mean_of_all(drys))])
     if len(lines) < 2:
         return ""
-    head = ["Method"] + [f"{sc} in rain / dry" for sc in scenes] + ["Average"]
-    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + lines)
+    return _markdown(["Method"] + [f"{sc} in rain / dry" for sc in scenes] + ["Average"], lines)
 
 
 def _mean_of_all(values) -> float | None:
@@ -298,11 +306,10 @@ def gap_table(cells: list[Cell], results: dict, prefix: str) -> str:
         cols = ["n/a" if x is None else f"{x[0]:+.2f} / {x[1]:.2f}" for x in pairs]
         mean = (f"{sum(g for g, _ in known) / len(known):+.2f} / {sum(t for _, t in known) / len(known):.2f}"
                 if len(known) == len(pairs) else "n/a")
-        rows.append("| " + " | ".join([f"{label} (over {base})"] + cols + [mean]) + " |")
+        rows.append([f"{label} (over {base})"] + cols + [mean])
     if not rows:
         return ""
-    head = ["Method"] + [f"{sc} gain / gap" for sc in scenes] + ["Average"]
-    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + rows)
+    return _markdown(["Method"] + [f"{sc} gain / gap" for sc in scenes] + ["Average"], rows)
 
 
 def markdown_report(cells: list[Cell], results: dict) -> str:

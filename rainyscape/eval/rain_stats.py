@@ -64,14 +64,17 @@ def view_rain_stats(v: ViewImages, options: dict, true_directions: int = 1) -> d
         if len(truth) > 1:
             row["rain_angles_true_deg"] = truth
     if v.rain is not None:
-        angles = streak_angles_deg(v.rain, options)  # strongest first
+        k = options.get("k", 1)
+        # strongest first; as many as the AGR term uses or the true rain has (the first k of
+        # them are the k strongest: the histogram's peaks are ranked)
+        predicted = streak_angles_deg(v.rain, {**options, "k": max(len(truth or ()), k)})
+        angles = predicted[:k]
         row["rain_angle_deg"] = angles[0] if angles else None
-        if options.get("k", 1) > 1:  # multi-direction rain: every direction the AGR term uses
+        if k > 1:  # multi-direction rain: every direction the AGR term uses
             row["rain_angles_deg"] = angles
         row["residual_angle_deg"] = streak_angle_deg(v.rainy - v.rendered, options)
         if v.true_rain is not None:
             row["rain_correlation"] = correlation(v.rain, v.true_rain)
         if truth:
-            predicted = streak_angles_deg(v.rain, {**options, "k": max(len(truth), options.get("k", 1))})
             row["rain_angle_error_deg"] = matched_angle_error_deg(predicted, truth)
     return row

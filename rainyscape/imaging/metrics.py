@@ -31,10 +31,7 @@ def psnr(pred: Tensor, target: Tensor) -> Tensor:
 def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor) -> float | None:
     """PSNR in dB over the pixels where ``mask`` (H, W) is set, every channel of images
     (C, H, W) in [0, 1]; None when the mask is empty."""
-    if not bool(mask.any()):
-        return None
-    mse = ((pred.float() - target.float()) ** 2)[:, mask].mean()
-    return float(-10.0 * torch.log10(mse.clamp_min(1e-12)))
+    return float(psnr(pred[:, mask], target[:, mask])) if bool(mask.any()) else None
 
 
 def gaussian_kernel1d(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA,

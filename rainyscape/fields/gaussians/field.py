@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 from torch import Tensor, nn
@@ -45,6 +45,9 @@ def growth_cap(max_gaussians: int, pixels_per_gaussian: int, train_pixels: int) 
     if pixels_per_gaussian > 0:
         caps.append(max(1, train_pixels // pixels_per_gaussian))
     return min(caps, default=0)
+
+
+InitMode = Literal["auto", "points", "frustum", "random"]
 
 
 def init_mode(option: str, scene: SceneData) -> str:
@@ -100,7 +103,7 @@ class GaussianField(Field):
     class Config:
         sh_degree: int = bounded(3, 0, MAX_SH_DEGREE)
         # auto: the scene's points if it has them, else frustum on forward-facing captures, else random
-        init: Literal["auto", "points", "frustum", "random"] = "auto"
+        init: InitMode = "auto"
         init_points: int = bounded(100_000, 0)  # at most this many of the scene's sparse points (random subset)
         random_points: int = bounded(100_000, 0)  # random Gaussians (gsplat: 100k) ...
         random_extent: float = bounded(3.0, 0.0)  # ... in a cube of this x the scene extent about the cameras' centroid (0: the scene box)
@@ -146,8 +149,8 @@ class GaussianField(Field):
             raise ConfigError(f"field.backend must be one of {', '.join(BACKENDS)}, got '{c.backend}'")
         if len(c.background) != 3:
             raise ConfigError("field.background needs three values (r, g, b)")
-        if c.init not in ("auto", "points", "frustum", "random"):
-            raise ConfigError(f"field.init must be auto, points, frustum or random, got '{c.init}'")
+        if c.init not in get_args(InitMode):
+            raise ConfigError(f"field.init must be one of {', '.join(get_args(InitMode))}, got '{c.init}'")
         self.width, self.height = scene.width, scene.height
         train = scene.train_indices or list(range(scene.num_images))
         self.max_gaussians = growth_cap(c.max_gaussians, c.pixels_per_gaussian,
