@@ -42,6 +42,9 @@ def test_every_field_of_the_protocol(tmp_path):
     assert s["rain_angle_error_deg"] == 0.0
     assert s["rain_angle_deg"] == pytest.approx(s["rain_angle_true_deg"])
     assert 0 <= s["rain_angle_deg"] < 180
+    assert s["train_rain_recovered"] == pytest.approx(1.0, abs=1e-4)  # ... and all of its amount
+    assert s["train_keep_rain_kept"] == pytest.approx(1.0, abs=1e-4)  # the input keeps all the rain
+    assert s["train_rain_kept"] > 0 and s["heldout_rain_kept"] > 0  # clean + OFFSET: above clean
     # LPIPS is either measured or reported unavailable with a reason, never estimated
     if m["lpips"]["available"]:
         assert 0 <= s["train_lpips"] < 1
@@ -173,3 +176,30 @@ def test_psnr_in_rain_and_on_dry_pixels():
     assert row["fusion_psnr_in_rain"] == pytest.approx(20.0, abs=1e-3) and row["fusion_psnr_dry"] == 120.0
     dry = ViewImages(0, "v", "heldout", clean, rendered, None, clean=clean, true_rain=torch.zeros(3, 8, 8))
     assert view_metrics(dry, LpipsMetric(None, "not needed"), {})["psnr_in_rain"] is None
+
+
+def test_rain_shares_say_where_the_true_rain_went():
+    """Under a streak of true rain 0.3: a render 0.1 above clean keeps a third of it, a
+    predicted rain of 0.15 recovers half; a fusion that keeps the rainy input there keeps it
+    all; the dry pixels (render off by 0.01) do not count."""
+    from rainyscape.eval.perceptual import LpipsMetric
+    from rainyscape.eval.protocol import rain_shares, view_metrics
+    from rainyscape.eval.views import ViewImages
+
+    clean = torch.full((3, 8, 8), 0.5)
+    true_rain = torch.zeros(3, 8, 8)
+    true_rain[:, :, 2] = 0.3
+    wet = true_rain.amax(0) > 0
+    rendered = clean + torch.where(wet, 0.1, 0.01)
+    rain = torch.where(wet, 0.15, 0.05).expand(3, 8, 8)
+    v = ViewImages(0, "v", "train", clean + true_rain, rendered, None, clean=clean, true_rain=true_rain,
+                   rain=rain, post={"keep": clean + true_rain})
+    row = view_metrics(v, LpipsMetric(None, "not needed"), {})
+    assert row["rain_kept"] == pytest.approx(1 / 3, abs=1e-6)
+    assert row["rain_recovered"] == pytest.approx(0.5, abs=1e-6)
+    assert row["keep_rain_kept"] == pytest.approx(1.0, abs=1e-6)
+    assert "keep_rain_recovered" not in row
+    darker = rain_shares(clean - true_rain, clean, true_rain, wet)
+    assert darker == {"rain_kept": pytest.approx(-1.0)}  # a render darker than clean reads below 0
+    assert rain_shares(rendered, clean, torch.zeros(3, 8, 8), torch.zeros(8, 8, dtype=torch.bool),
+                       rain) == {"rain_kept": None, "rain_recovered": None}

@@ -115,3 +115,11 @@ def chromium_probe(report: Path) -> tuple[int, int]:
 
 def test_report_opens_in_headless_chromium(fake_run):
     assert chromium_probe(fake_run / "report.html") == (6, 0)
+
+
+def test_rain_table_says_where_the_true_rain_went():
+    from rainyscape.eval.report import rain_table
+
+    html_ = rain_table({"rain_correlation": 0.5, "train_rain_recovered": 0.49, "train_rain_kept": 0.15})
+    assert "share of the true rain the predicted rain holds</td><td>0.49" in html_
+    assert "share of the true rain the render still shows</td><td>0.15" in html_

@@ -59,6 +59,25 @@ def region_psnr(pred: Tensor, clean: Tensor, wet: Tensor) -> dict[str, float | N
     return {"psnr_in_rain": masked_psnr(pred, clean, wet), "psnr_dry": masked_psnr(pred, clean, ~wet)}
 
 
+def rain_shares(rendered: Tensor, clean: Tensor, true_rain: Tensor, wet: Tensor,
+                rain: Tensor | None = None) -> dict[str, float | None]:
+    """Where a view's true rain went, on the pixels it covers (``wet``, (H, W)), as shares of
+    its amount there (sum over wet pixels and channels): ``rain_kept`` is how much of it the
+    render still shows (sum (B - clean) / sum rain: 1 = the rainy input, 0 = clean, below 0 =
+    darker than clean), ``rain_recovered`` how much of it the predicted rain holds (sum R /
+    sum rain; only with ``rain``). None where the view has no rain."""
+    m = wet.expand_as(true_rain)
+    total = float(true_rain[m].double().sum())
+
+    def share(layer: Tensor) -> float | None:
+        return float(layer[m].double().sum()) / total if total > 0 else None
+
+    out = {"rain_kept": share(rendered - clean)}
+    if rain is not None:
+        out["rain_recovered"] = share(rain)
+    return out
+
+
 def fusion_mask(post, rendered: Tensor, rain: Tensor, rainy: Tensor) -> Tensor | None:
     """The (1, H, W) boolean mask under which fusion post-process ``post`` keeps rendered
     pixels: its own ``post.mask(rendered, rain, rainy)`` when it has one, for rain-mask fusion
@@ -119,10 +138,12 @@ def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict,
     if v.clean is not None and v.true_rain is not None:
         wet = v.true_rain.amax(0) > RAIN_PIXEL
         row.update(region_psnr(v.rendered, v.clean, wet))
+        row.update(rain_shares(v.rendered, v.clean, v.true_rain, wet, v.rain))
         if v.split == "train":  # the input is exact on dry pixels: only its rain counts
             row["rainy_input_psnr_in_rain"] = region_psnr(v.rainy, v.clean, wet)["psnr_in_rain"]
             for key, img in v.post.items():
-                row.update({f"{key}_{k}": x for k, x in region_psnr(img, v.clean, wet).items()})
+                regions = {**region_psnr(img, v.clean, wet), **rain_shares(img, v.clean, v.true_rain, wet)}
+                row.update({f"{key}_{k}": x for k, x in regions.items()})
     row.update(view_rain_stats(v, angle_opts, true_directions))
     return row
 

@@ -197,7 +197,9 @@ def rain_table(summary: dict) -> str:
              ("residual_angle_deg", "streak angle of the residual I - B (deg)"),
              ("rain_angle_true_deg", "true rain streak angle (deg)"),
              ("rain_angle_error_deg", "angle error, predicted vs true (deg)"),
-             ("rain_correlation", "correlation, predicted vs true rain layer")]
+             ("rain_correlation", "correlation, predicted vs true rain layer"),
+             ("train_rain_recovered", "share of the true rain the predicted rain holds"),
+             ("train_rain_kept", "share of the true rain the render still shows")]
     rows = [(label, summary[k]) for k, label in names if k in summary]
     if not rows:
         return ""
