@@ -78,6 +78,12 @@ def rain_shares(rendered: Tensor, clean: Tensor, true_rain: Tensor, wet: Tensor,
     return out
 
 
+def region_metrics(image: Tensor, clean: Tensor, true_rain: Tensor, wet: Tensor,
+                   rain: Tensor | None = None) -> dict[str, float | None]:
+    """:func:`region_psnr` and :func:`rain_shares` of one image."""
+    return {**region_psnr(image, clean, wet), **rain_shares(image, clean, true_rain, wet, rain)}
+
+
 def fusion_mask(post, rendered: Tensor, rain: Tensor, rainy: Tensor) -> Tensor | None:
     """The (1, H, W) boolean mask under which fusion post-process ``post`` keeps rendered
     pixels: its own ``post.mask(rendered, rain, rainy)`` when it has one, for rain-mask fusion
@@ -137,13 +143,11 @@ def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict,
         row[f"{key}_coverage"] = coverage
     if v.clean is not None and v.true_rain is not None:
         wet = v.true_rain.amax(0) > RAIN_PIXEL
-        row.update(region_psnr(v.rendered, v.clean, wet))
-        row.update(rain_shares(v.rendered, v.clean, v.true_rain, wet, v.rain))
+        row.update(region_metrics(v.rendered, v.clean, v.true_rain, wet, v.rain))
         if v.split == "train":  # the input is exact on dry pixels: only its rain counts
             row["rainy_input_psnr_in_rain"] = region_psnr(v.rainy, v.clean, wet)["psnr_in_rain"]
             for key, img in v.post.items():
-                regions = {**region_psnr(img, v.clean, wet), **rain_shares(img, v.clean, v.true_rain, wet)}
-                row.update({f"{key}_{k}": x for k, x in regions.items()})
+                row.update({f"{key}_{k}": x for k, x in region_metrics(img, v.clean, v.true_rain, wet).items()})
     row.update(view_rain_stats(v, angle_opts, true_directions))
     return row
 
