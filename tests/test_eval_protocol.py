@@ -145,7 +145,7 @@ def test_two_direction_rain_is_matched_whichever_direction_dominates():
 
 
 def test_the_simulator_records_how_many_directions_its_rain_falls_in(tmp_path, tiny_scene_dir):
-    from rainyscape.dataparsers.maya_csv import simulated_rain
+    from rainyscape.dataparsers.truth import simulated_rain
 
     assert simulated_rain(tiny_scene_dir) == {"rain_directions": 1}
     (tmp_path / "scene.json").write_text(json.dumps({"rain": {"wind2_deg": 20.0, "mix": 0.45}}))

@@ -9,9 +9,10 @@ from pathlib import Path
 
 from rainyscape.errors import ConfigError
 
-# The field's ceiling: a method trained on a simulated scene's clean views at the same budget.
+# The field's ceiling: a method trained on a scene's clean views at the same budget (a
+# simulated scene, or a real capture with simulated rain: both keep them in CLEAN_IMAGES).
 CLEAN_IMAGES = "images_wo_rain"
-CLEAN_OVERRIDES = ["dataparser=maya-csv", f"dataparser.images={CLEAN_IMAGES}", f"dataparser.clean={CLEAN_IMAGES}"]
+CLEAN_FORMATS = ("maya-csv", "transforms-json")  # parsers that train on them with images= / clean=
 CEILING = " on clean views"
 
 # The paper's loss ablation (Table II): variant label -> overrides of the ablated method.
@@ -53,11 +54,33 @@ class Cell:
         return self.key.replace("/", "__").replace(" ", "_")
 
 
-def has_clean_views(data: str) -> bool:
-    """Whether a scene folder is one the simulator wrote, with clean views to train on (a
-    folder not simulated yet, "", will be one)."""
+def clean_views_format(data: str) -> str | None:
+    """The dataparser that trains on a scene folder's clean views (a simulated scene, or a real
+    capture given simulated rain), None when it has none. A folder not simulated yet ("")
+    will be a simulated one."""
+    from rainyscape.dataparsers.auto import detect_format
+    from rainyscape.errors import DataError
+
     folder = Path(data)
-    return not data or not folder.is_dir() or ((folder / CLEAN_IMAGES).is_dir() and (folder / "cameras.csv").is_file())
+    if not data or not folder.is_dir():
+        return "maya-csv"
+    if not (folder / CLEAN_IMAGES).is_dir():
+        return None
+    try:
+        fmt = detect_format(folder)
+    except DataError:
+        return None
+    return fmt if fmt in CLEAN_FORMATS else None
+
+
+def has_clean_views(data: str) -> bool:
+    return clean_views_format(data) is not None
+
+
+def clean_overrides(data: str) -> list[str]:
+    """The overrides that train a cell on the scene's clean views (and score against them)."""
+    return [f"dataparser={clean_views_format(data)}", f"dataparser.images={CLEAN_IMAGES}",
+            f"dataparser.clean={CLEAN_IMAGES}"]
 
 
 def build_cells(methods: list[str], scenes: list[tuple[str, str]], overrides: list[str],
@@ -68,7 +91,7 @@ def build_cells(methods: list[str], scenes: list[tuple[str, str]], overrides: li
     the loss ablation. Each cell's overrides: ``method_overrides[method]`` (e.g. a scene set's
     step count for that method's field), then ``overrides`` (the command's: they win)."""
     per = method_overrides or {}
-    cells = [Cell(f"{label}/{m}{CEILING}", label, data, m, per.get(m, []) + list(overrides) + CLEAN_OVERRIDES,
+    cells = [Cell(f"{label}/{m}{CEILING}", label, data, m, per.get(m, []) + list(overrides) + clean_overrides(data),
                   f"{m}{CEILING}", clean=True)
              for label, data in scenes for m in ceiling if has_clean_views(data)]
     cells += [Cell(f"{label}/{m}", label, data, m, per.get(m, []) + list(overrides), m)

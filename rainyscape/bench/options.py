@@ -14,6 +14,9 @@ class BenchOptions:
     scenes: str = field(default="demo", metadata={"help": "a scene set (cpu: 128 px for a CPU, paper: 512 px "
                                                           "for a GPU), or comma-separated simulator presets "
                                                           "or scene folders"})
+    captures: str = field(default="", metadata={"help": "scenes=real: a folder of real captures (posed "
+                                                         "scenes or photo folders; default "
+                                                         "$RAINYSCAPE_CAPTURES, else ../shared/data/real)"})
     iters: int = field(default=0, metadata={"help": "trainer.max_iters of every cell (0: the scene set's "
                                                     "budget per field, else each method's own)"})
     out: str = field(default="benchmarks/results", metadata={"help": "results folder"})

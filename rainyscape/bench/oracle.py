@@ -39,8 +39,11 @@ def cached_oracle(entry: dict | None, folder: str) -> bool:
 
 def unavailable(folder: str) -> str | None:
     """Why a folder has no oracle, when that is known without rendering (None: try it)."""
-    if not (Path(folder) / "scene.json").is_file():
+    meta = Path(folder) / "scene.json"
+    if not meta.is_file():
         return "not a simulated scene folder (no scene.json): no clean scene to re-render"
+    if '"preset"' not in meta.read_text():
+        return "a real capture: its photos are the ground truth, there is no scene to re-render"
     return None
 
 

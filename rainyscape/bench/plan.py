@@ -144,9 +144,16 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
                 height=opts.scene_height or (sset.height if sset and not opts.scene_width else 0),
                 rows=opts.scene_rows or (sset.rows if sset else 0), cols=opts.scene_cols or (sset.cols if sset else 0))
     specs = list(sset.presets) if sset else [s.strip() for s in opts.scenes.split(",") if s.strip()]
-    if not specs:
-        raise ConfigError("rs-bench: scenes= lists no scene")
-    scenes = list({p.label: p for p in (plan_scene(s, **size) for s in specs)}.values())
+    if sset and sset.captures:  # made (once, cached) now: their sizes come from the folders
+        from rainyscape.bench.captures import real_scenes
+
+        planned = [ScenePlan(label, folder=str(folder))
+                   for label, folder in real_scenes(opts.captures, Path(opts.out) / "scenes")]
+    else:
+        if not specs:
+            raise ConfigError("rs-bench: scenes= lists no scene")
+        planned = [plan_scene(s, **size) for s in specs]
+    scenes = list({p.label: p for p in planned}.values())
     plan = BenchPlan(methods, scenes, plan_scene(opts.ablation, **size) if opts.ablation else None,
                      opts.ablation_method, base + overrides, per_method, sset.name if sset else None,
                      ceiling_methods(opts.ceiling, methods))
