@@ -17,7 +17,8 @@ from rainyscape.components import LossContext, RenderOutput, TrainState
 from rainyscape.config import method_config
 from rainyscape.engine.pipeline import build_pipeline, compute_losses
 from rainyscape.errors import ConfigError
-from rainyscape.fields.gaussians.densify import DensifySchedule, replace_params
+from rainyscape.fields.gaussians.densify import DensifySchedule
+from rainyscape.fields.gaussians.ops import replace_params
 from rainyscape.fields.gaussians.field import GaussianField, growth_cap
 from rainyscape.fields.gaussians.ply import read_ply
 from rainyscape.fields.gaussians.sh import SH_C0, sh_basis, sh_to_rgb
@@ -214,7 +215,7 @@ def test_grow_clones_small_and_splits_large(tiny_scene):
     field = make_field(tiny_scene, init_points=200)
     opts = adam_for(field)
     cb = field.callbacks()[0]
-    dens = cb.densifier
+    dens = cb.strategy
     n = field.num_gaussians
     with torch.no_grad():  # half of them below the clone / split size threshold
         field.params["scales"][::2] = math.log(0.5 * dens.grow_scale3d * dens.extent)
@@ -244,7 +245,7 @@ def test_prune_and_opacity_reset(tiny_scene):
     opts["opacities"].step()
     with torch.no_grad():
         field.params["opacities"][:50] = -10.0  # nearly transparent
-    dens = field.callbacks()[0].densifier
+    dens = field.callbacks()[0].strategy
     assert dens.prune(field.params, opts, prune_large=False) == 50
     assert field.num_gaussians == 250
     dens.reset_opacity(field.params, opts, 0.01)
@@ -267,7 +268,7 @@ def test_callback_schedule_sh_degree_lr_and_densification(tiny_scene):
     out = field.train().render(cams, Window.full(cams))
     out.rgb.mean().backward()
     cb.after_backward(state, out)
-    assert cb.densifier.count.sum() > 0
+    assert cb.strategy.count.sum() > 0
     before = field.num_gaussians
     cb.after_step(replace(state, step=9))  # 10th step: a refinement step
     assert field.num_gaussians > before and cb.last_stats["gaussians"] == field.num_gaussians
