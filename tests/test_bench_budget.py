@@ -19,7 +19,7 @@ PAPER_PATCH = ("phases.joint.patches=1", "phases.joint.patch_size=64")  # one 64
 
 
 def _budget(method: str, *overrides: str, size: int = 128) -> Budget:
-    return cell_budget(method_config(method, ["trainer.max_iters=100", *overrides]), size, size)
+    return cell_budget(method_config(method, ["trainer.max_iters=100", *overrides]), size, size, 16)
 
 
 def test_budgets_of_the_real_methods():
@@ -140,7 +140,7 @@ def test_every_recipe_builds_and_a_field_family_shares_one_budget(profile):
     from rainyscape import registry
 
     ours = [n for n, e in registry.entries("method").items() if e.target.startswith("rainyscape.methods")]
-    budgets = {m: cell_budget(method_config(m, [f"profile={profile}"]), 512, 512) for m in ours}
+    budgets = {m: cell_budget(method_config(m, [f"profile={profile}"]), 512, 512, 44) for m in ours}
     groups = {"grid": ("nerf", "robust-nerf", "rainyscape-nerf"),
               "nerf-mlp": ("vanilla-nerf", "rainyscape-vanilla-nerf"),
               "gaussians": ("3dgs", "robust-3dgs", "rainyscape-3dgs", "rainyscape-plus")}

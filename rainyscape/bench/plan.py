@@ -11,7 +11,7 @@ from pathlib import Path
 from rainyscape.bench.budget import Budget, Mismatch, cell_budget, check_budgets
 from rainyscape.bench.matrix import Cell, build_cells, cell_config, validate_cells
 from rainyscape.bench.options import BenchOptions
-from rainyscape.bench.scenes import ScenePlan, plan_scene, planned_image_size
+from rainyscape.bench.scenes import ScenePlan, plan_scene
 from rainyscape.bench.sets import scene_set
 from rainyscape.config.overrides import uses_cuda
 from rainyscape.config.schema import PROFILES
@@ -77,38 +77,46 @@ def ceiling_methods(option: str, methods: list[str]) -> list[str]:
     return chosen
 
 
+def fixed_length(steps: int) -> list[str]:
+    """Overrides that make a run exactly ``steps`` long (whatever its steps-per-view rule)."""
+    return [f"trainer.max_iters={steps}", "trainer.iters_per_view=0"]
+
+
 def family_iters(methods: list[str], overrides: list[str], iters: dict[str, int]) -> dict[str, list[str]]:
     """Per method, the ``trainer.max_iters`` override a scene set gives its field family."""
     out = {}
     for m in methods:
         family = cell_config(Cell(m, "", "", m, list(overrides))).field.name
         if family in iters:
-            out[m] = [f"trainer.max_iters={iters[family]}"]
+            out[m] = fixed_length(iters[family])
     return out
 
 
-def image_size(plan: ScenePlan, cfg) -> tuple[int, int]:
-    """(width, height) of a scene's images as the cells' dataparser delivers them (after its
-    downscale); a folder without ``scene.json`` is parsed to find out."""
-    size = planned_image_size(plan)
-    if size is None:
-        from rainyscape.engine.pipeline import load_scene
+def scene_shape(plan: ScenePlan, cfg) -> tuple[int, int, int]:
+    """(width, height, training views) of a scene as the cells' dataparser delivers it (after
+    its downscale and held-out split); a folder is parsed to find out, a preset is counted."""
+    from rainyscape.scene import split_indices
 
-        scene = load_scene(cfg, Path(plan.folder))
-        return scene.width, scene.height
-    factor = max(1, int(getattr(cfg.dataparser.options, "downscale", 1) or 1))
-    return size[0] // factor, size[1] // factor
+    options = cfg.dataparser.options
+    if plan.preset:
+        factor = max(1, int(getattr(options, "downscale", 1) or 1))
+        train, _ = split_indices(plan.rows * plan.cols, getattr(options, "holdout_every", 8))
+        return plan.width // factor, plan.height // factor, len(train)
+    from rainyscape.engine.pipeline import load_scene
+
+    scene = load_scene(cfg, Path(plan.folder))
+    return scene.width, scene.height, len(scene.train_indices)
 
 
 def plan_budgets(cells: list[Cell], plans: dict[str, ScenePlan]) -> dict[str, Budget]:
     """Every cell's training budget from its typed config, before anything is simulated or trained."""
-    sizes: dict[str, tuple[int, int]] = {}
+    shapes: dict[str, tuple[int, int, int]] = {}
     budgets = {}
     for cell in cells:
         cfg = cell_config(cell)
-        if cell.scene not in sizes:
-            sizes[cell.scene] = image_size(plans[cell.scene], cfg)
-        budgets[cell.key] = cell_budget(cfg, *sizes[cell.scene])
+        if cell.scene not in shapes:
+            shapes[cell.scene] = scene_shape(plans[cell.scene], cfg)
+        budgets[cell.key] = cell_budget(cfg, *shapes[cell.scene])
     return budgets
 
 
@@ -132,7 +140,7 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
     profile = opts.profile if opts.profile != "auto" else "gpu" if uses_cuda(opts.device) else "cpu"
     # A table measures every view: no time limit on the cells' end-of-run evaluation.
     base = [f"profile={profile}", "trainer.final_eval_views=0", "trainer.final_eval_share=0"]
-    base += [f"trainer.max_iters={opts.iters}"] if opts.iters else []
+    base += fixed_length(opts.iters) if opts.iters else []
     every = list(dict.fromkeys(methods + ([opts.ablation_method] if opts.ablation else [])))
     overrides, own = split_method_overrides(overrides, every)
     # Every method and override must be valid before any scene is simulated or cell trained.

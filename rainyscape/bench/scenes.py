@@ -7,7 +7,6 @@ then *resolved* (:func:`resolve_scene`) to a folder."""
 
 from __future__ import annotations
 
-import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,21 +43,6 @@ def plan_scene(spec: str, width: int = 0, height: int = 0, rows: int = 0, cols: 
     embedded = spec == "demo" and not (width or height or rows or cols)
     return ScenePlan(spec, preset=spec, width=w, height=h, rows=rows or p.rows, cols=cols or p.cols,
                      embedded=embedded)
-
-
-def planned_image_size(plan: ScenePlan) -> tuple[int, int] | None:
-    """(width, height) of the scene's images before any downscale, when known without
-    simulating or parsing it: a preset's planned size, or a folder's ``scene.json``."""
-    if plan.preset:
-        return plan.width, plan.height
-    meta = Path(plan.folder) / "scene.json"
-    if meta.is_file():
-        try:
-            info = json.loads(meta.read_text())
-            return int(info["width"]), int(info["height"])
-        except (ValueError, KeyError, TypeError):
-            return None
-    return None
 
 
 def resolve_scene(plan: ScenePlan, cache: Path) -> tuple[str, str]:

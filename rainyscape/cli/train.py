@@ -74,6 +74,7 @@ def main(argv: list[str]) -> int:
         print(f"config, {cfg.profile} recipe (override with key=value; profile=auto, the default, "
               "runs the gpu recipe on a CUDA device and the cpu recipe elsewhere):")
         print(config.describe_tree(cfg))
+        print(f"\nrun length: {config.describe_run_length(cfg.trainer)}")
         print("\ngpu recipe (profile=gpu): the cpu recipe with")
         print("\n".join(f"  {o}" for o in spec.gpu) or "  (no changes)")
         return 0

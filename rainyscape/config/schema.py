@@ -64,7 +64,11 @@ def check_range(value: Any, metadata: Any, key: str) -> None:
 class TrainerConfig:
     """The run's length and bookkeeping (the engine's options)."""
 
-    max_iters: int = bounded(2000, 1)
+    max_iters: int = bounded(2000, 1)  # the run's length (the most steps, with iters_per_view)
+    # > 0: the run is this many steps per training view, within min_iters .. max_iters, so a
+    # capture of more views trains longer (resolved once the scene is read; config.yml records it)
+    iters_per_view: int = bounded(0, 0)
+    min_iters: int = bounded(0, 0)
     stop_at: int = bounded(0, 0)  # stop after this step (0: max_iters); resume continues the same schedule
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda | cuda:N
@@ -79,6 +83,13 @@ class TrainerConfig:
     # The evaluation at the end of rs-train (rs-eval runs the whole protocol on every view):
     final_eval_views: int = bounded(8, 0)  # views evaluated, spread over both splits (0: all)
     final_eval_share: float = bounded(0.1, 0.0)  # ... stopping after this share of the training time (0: no limit)
+
+
+def run_length(trainer: TrainerConfig, train_views: int) -> int:
+    """The steps a run of ``trainer`` trains on a scene of ``train_views`` training views."""
+    if trainer.iters_per_view <= 0:
+        return trainer.max_iters
+    return max(min(trainer.iters_per_view * train_views, trainer.max_iters), min(trainer.min_iters, trainer.max_iters))
 
 
 @dataclass
@@ -340,6 +351,24 @@ def _check_phases(cfg: PipelineConfig) -> None:
                 have = ", ".join(heads) or "none (set rain_head=NAME)"
                 raise ConfigError(f"phases.{name}.heads: '{head}' is not a head of this pipeline; "
                                   f"its heads: {have}")
+
+
+def describe_run_length(trainer: TrainerConfig) -> str:
+    """The rule :func:`run_length` applies, in words (for ``--help``)."""
+    if trainer.iters_per_view <= 0:
+        return f"{trainer.max_iters} steps (trainer.max_iters)"
+    return (f"{trainer.iters_per_view} steps per training view, at least {min(trainer.min_iters, trainer.max_iters)} "
+            f"and at most {trainer.max_iters} (trainer.iters_per_view, trainer.min_iters, trainer.max_iters; "
+            "trainer.iters_per_view=0 makes it trainer.max_iters)")
+
+
+def with_run_length(cfg: PipelineConfig, train_views: int) -> PipelineConfig:
+    """``cfg`` with ``trainer.max_iters`` resolved by :func:`run_length` for a scene of
+    ``train_views`` training views (the same config when no rule applies)."""
+    length = run_length(cfg.trainer, train_views)
+    if length == cfg.trainer.max_iters:
+        return cfg
+    return dataclasses.replace(cfg, trainer=dataclasses.replace(cfg.trainer, max_iters=length))
 
 
 def is_materialized(cfg: PipelineConfig) -> bool:

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from rainyscape import config as config_mod
-from rainyscape.config import PipelineConfig
+from rainyscape.config import PipelineConfig, with_run_length
 from rainyscape.engine.checkpoint import (checkpoint_path, load_checkpoint, load_newest_valid,
                                           remove_partial_writes)
 from rainyscape.engine.lock import RunLock, is_locked
@@ -130,6 +130,7 @@ def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
     try:
         seed_everything(cfg.trainer.seed)
         scene = load_scene(cfg, scene_folder(cfg))
+        cfg = with_run_length(cfg, len(scene.train_indices))
         if run_dir is None:
             run_dir = new_run_dir(cfg.trainer.output_dir, scene.name, cfg.method)
             lock = RunLock(run_dir, "rs-train").acquire()
