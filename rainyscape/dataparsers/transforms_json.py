@@ -256,11 +256,16 @@ class TransformsJsonParser(DataParser):
         if not frames or not isinstance(frames, list):
             raise DataError(f"{json_path}: no 'frames' list")
         images, cams, files = [], [], []
+        seen: dict[Path, int] = {}
         for i, frame in enumerate(frames):
             where = f"{json_path}, frame {i}"
             if not isinstance(frame, dict) or "file_path" not in frame:
                 raise DataError(f"{where}: no file_path")
             file = resolve_image(root, str(frame["file_path"]))
+            if file in seen:  # one photo, two poses: the views would contradict each other
+                raise DataError(f"{json_path}: frames {seen[file]} and {i} both use the image "
+                                f"{frame['file_path']}; each frame needs its own image")
+            seen[file] = i
             img = read_rgb(file)
             cam = frame_camera(meta, frame, where, (img.shape[1], img.shape[0]))
             if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
