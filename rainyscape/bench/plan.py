@@ -97,7 +97,8 @@ def image_size(plan: ScenePlan, cfg) -> tuple[int, int]:
         scene = load_scene(cfg, Path(plan.folder))
         if scene.clean_images is None:  # every cell would score n/a, and say nothing
             raise ConfigError(
-                f"{plan.folder}: the {cfg.dataparser.name} parser finds no clean images there, and rs-bench "
+                f"{plan.folder}: the {scene.metadata.get('dataparser', cfg.dataparser.name)} parser finds no "
+                "clean images there, and rs-bench "
                 "scores every cell against them; put them beside the rainy images as a '_wo_rain' "
                 "sibling folder (images_rain/ -> images_wo_rain/), or train it with rs-train, which takes "
                 "dataparser.clean=FOLDER")

@@ -29,7 +29,7 @@ from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from rainyscape.config.schema import DEVICES, SEED_MAX  # noqa: F401 (for the commands' options)
+from rainyscape.config.schema import DEVICES, MAX_STEPS, SEED_MAX  # noqa: F401 (for the commands' options)
 from rainyscape.errors import ConfigError
 
 HELP_FLAGS = ("--help", "-h")
@@ -239,7 +239,9 @@ def _option_lines(cls: type, dashed: bool) -> list[tuple[str, str]]:
 def _range_text(metadata: Any) -> str:
     lo, hi, above = metadata.get("min"), metadata.get("max"), metadata.get("above")
     if metadata.get("choices"):
-        return "one of " + " | ".join(metadata["choices"])
+        from rainyscape.config.schema import choices_text
+
+        return "one of " + choices_text(metadata["choices"])
     if lo is None and hi is None and above is None:
         return ""
     from rainyscape.config.schema import range_text  # config imports nothing heavy

@@ -17,14 +17,14 @@ import sys
 from dataclasses import dataclass
 
 from rainyscape.cli import run_cli
-from rainyscape.cli.args import DEVICES, READ_OOM_HINT, Command, opt, parse, print_help, run_dir
+from rainyscape.cli.args import DEVICES, MAX_STEPS, READ_OOM_HINT, Command, opt, parse, print_help, run_dir
 
 
 @dataclass
 class EvalOptions:
     device: str = opt("auto", "the device to evaluate on", choices=DEVICES)
     data: str = opt("", "the scene folder, if it moved since training (config.yml names the old one)")
-    step: int | None = opt(None, "the checkpoint's step (default: the latest)", lo=0)
+    step: int | None = opt(None, "the checkpoint's step (default: the latest)", lo=0, hi=MAX_STEPS)
 
 
 COMMAND = Command("rs-eval", __doc__, EvalOptions, positional="RUN_DIR", oom_hint=READ_OOM_HINT)

@@ -31,7 +31,8 @@ class ExportArgs:
     what: str = opt("auto", "what to export", choices=("auto", "mesh", "gaussians", "cameras"))
     format: str = opt("ply", "mesh file format", choices=("ply", "glb"))
     resolution: int = opt(128, "mesh: lattice samples along the scene box's longest side", lo=8, hi=2048)
-    level: float | None = opt(None, "mesh: density of the surface (default: one step half opaque)", above=0.0)
+    level: float | None = opt(None, "mesh: density of the surface (default: one step half opaque)", hi=1e9,
+                              above=0.0)
     out: str = opt("", "output folder (default: RUN_DIR/export)")
     images: bool = opt(True, "cameras: the de-rained render of every view under images/")
     device: str = opt("auto", "the device to render on", choices=DEVICES)

@@ -68,15 +68,22 @@ def matches_choice(value: str, choices: tuple[str, ...]) -> bool:
     return False
 
 
+def choices_text(choices: tuple[str, ...]) -> str:
+    """How choices read in messages and ``--help``: "auto | cpu | cuda" ('' for the empty one)."""
+    return " | ".join(c or "''" for c in choices)
+
+
 def check_choice(value: Any, choices: tuple[str, ...] | None, key: str) -> None:
     """ConfigError naming ``key`` and the choices unless ``value`` is one of them."""
     if choices and value is not None and not matches_choice(value, choices):
-        raise ConfigError(f"{key}={value}: not one of {' | '.join(choices)}")
+        raise ConfigError(f"{key}={value}: not one of {choices_text(choices)}")
 
 
 # Devices a run may name: auto (CUDA when present, else the CPU), cpu, cuda, cuda:N
 DEVICES = ("auto", "cpu", "cuda", "cuda:N")
 SEED_MAX = 2**32 - 1  # numpy's seeds are 32-bit
+MAX_STEPS = 100_000_000  # step counts: far beyond any run, short of an overflow
+MAX_VIEWS = 100_000  # view counts
 
 
 def check_range(value: Any, metadata: Any, key: str) -> None:
@@ -99,22 +106,22 @@ def check_range(value: Any, metadata: Any, key: str) -> None:
 class TrainerConfig:
     """The run's length and bookkeeping (the engine's options)."""
 
-    max_iters: int = bounded(2000, 1)
-    stop_at: int = bounded(0, 0)  # stop after this step (0: max_iters); resume continues the same schedule
+    max_iters: int = bounded(2000, 1, MAX_STEPS)
+    stop_at: int = bounded(0, 0, MAX_STEPS)  # stop after this step (0: max_iters); resume continues the same schedule
     seed: int = bounded(0, 0, SEED_MAX)
     device: str = choice("auto", DEVICES)  # auto | cpu | cuda | cuda:N
-    log_every: int = bounded(25, 1)
-    eval_every: int = bounded(500, 0)  # periodic evaluation on a few views (0: off)
-    eval_views: int = bounded(2, 0)
-    checkpoint_every: int = bounded(1000, 0)  # steps between checkpoints (0: only at the end) ...
-    checkpoint_minutes: float = bounded(5.0, 0.0)  # ... and at least this often in minutes (0: off)
-    keep_checkpoints: int = bounded(2, 0)  # newest checkpoints kept (0: all)
+    log_every: int = bounded(25, 1, MAX_STEPS)
+    eval_every: int = bounded(500, 0, MAX_STEPS)  # periodic evaluation on a few views (0: off)
+    eval_views: int = bounded(2, 0, MAX_VIEWS)
+    checkpoint_every: int = bounded(1000, 0, MAX_STEPS)  # steps between checkpoints (0: only at the end) ...
+    checkpoint_minutes: float = bounded(5.0, 0.0, 24 * 60.0)  # ... and at least this often in minutes (0: off)
+    keep_checkpoints: int = bounded(2, 0, 1_000_000)  # newest checkpoints kept (0: all)
     output_dir: str = "outputs"
     progress: bool = True
     # The evaluation at the end of rs-train (rs-eval runs the whole protocol on every view):
     # a fixed subset of this many views, spread over both splits (0: all); never bounded by time,
     # so that two evaluations of the same weights give the same metrics
-    final_eval_views: int = bounded(8, 0)
+    final_eval_views: int = bounded(8, 0, MAX_VIEWS)
 
 
 # Keys a saved config.yml may hold that the code no longer has, with why: read and dropped
@@ -135,11 +142,11 @@ class PhaseConfig:
     """
 
     end: float = bounded(1.0, 0.0, 1.0)  # this phase runs until step round(end * max_iters)
-    patches: int = bounded(1, 1)  # a batch: this many windows from random training views ...
-    patch_size: int = bounded(64, 0)  # ... of this size in pixels (0: whole images)
+    patches: int = bounded(1, 1, 65536)  # a batch: this many windows from random training views ...
+    patch_size: int = bounded(64, 0, 8192)  # ... of this size in pixels (0: whole images)
     heads: tuple[str, ...] = ()  # pipeline heads predicting image layers here (e.g. rain_head)
-    field_lr_scale: float = bounded(1.0, 0.0)  # the field's scheduled lr times this ...
-    field_lr: float | None = bounded(None, 0.0)  # ... or this fixed lr (the paper's NeRF: 1e-6)
+    field_lr_scale: float = bounded(1.0, 0.0, 1000.0)  # the field's scheduled lr times this ...
+    field_lr: float | None = bounded(None, 0.0, 10.0)  # ... or this fixed lr (the paper's NeRF: 1e-6)
 
 
 @dataclass
@@ -151,7 +158,7 @@ class ComponentConfig:
 @dataclass
 class LossConfig:
     name: str  # the registered loss component
-    weight: float = bounded(1.0, 0.0)
+    weight: float = bounded(1.0, 0.0, 1e6)
     phases: tuple[str, ...] = ()  # the phases it acts in (empty: the loss class's default phases)
     detach: str = ""  # "" | "rendered" | "rain": stop gradients into that input
     options: Any = field(default_factory=dict)
