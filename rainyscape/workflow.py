@@ -5,9 +5,10 @@ It composes the layers below it (engine, eval, synth) so that none of them needs
 the engine trains whatever it is given, evaluation evaluates a pipeline, the simulator
 makes scenes. ``rs-train`` and ``rs-bench`` call :func:`train_and_evaluate`.
 
-The evaluation at the end of training is bounded: ``trainer.final_eval_views`` views spread
-over both splits, and no view started after ``trainer.final_eval_share`` of the training
-time has gone into it. ``rs-eval RUN_DIR`` runs the protocol on every view.
+The evaluation at the end of training is bounded by views, never by time: a fixed subset of
+``trainer.final_eval_views`` views over both splits (the same for every run of a scene), so
+that two evaluations of the same weights give the same metrics.json. ``rs-eval RUN_DIR`` runs
+the protocol on every view.
 """
 
 from __future__ import annotations
@@ -31,24 +32,22 @@ def with_scene(cfg: PipelineConfig) -> PipelineConfig:
     return dataclasses.replace(cfg, data=str(ensure_demo_scene()))
 
 
-def final_evaluation(run: Run, training_seconds: float | None) -> dict:
-    """The protocol on the views ``trainer.final_eval_views`` / ``final_eval_share`` allow,
-    with a line saying what it evaluates; ``training_seconds``: the whole run's estimated
-    training time (None: unknown, no time limit)."""
+def final_evaluation(run: Run) -> dict:
+    """The protocol on the fixed subset of views ``trainer.final_eval_views`` asks for, with a
+    line saying which views it measures."""
     from rainyscape.eval.protocol import evaluate_pipeline
     from rainyscape.eval.views import choose_views
 
-    t = run.pipeline.config.trainer
     scene = run.pipeline.scene
-    views = choose_views(list(scene.train_indices), list(scene.eval_indices), t.final_eval_views)
-    limit = t.final_eval_share * training_seconds if t.final_eval_share and training_seconds else None
-    some = len(views) < scene.num_images or limit is not None
+    views = choose_views(list(scene.train_indices), list(scene.eval_indices),
+                         run.pipeline.config.trainer.final_eval_views)
+    some = len(views) < scene.num_images
     print(f"evaluating {len(views)} of {scene.num_images} views"
-          + (f" (at most {limit:.0f} s, {t.final_eval_share:.0%} of the training time)" if limit else "")
-          + (f"; rs-eval {run.run_dir} evaluates every view" if some else ""), file=sys.stderr)
-    metrics = evaluate_pipeline(run.pipeline, run.run_dir, views=views, time_limit=limit)
-    done = metrics["evaluated"]
-    print(f"evaluated {len(done['views'])} views in {done['seconds']:.1f} s", file=sys.stderr)
+          + (f" ({', '.join(scene.image_names[i] for i in views)}; a fixed subset: rs-eval "
+             f"{run.run_dir} evaluates every view)" if some else ""), file=sys.stderr)
+    started = time.perf_counter()
+    metrics = evaluate_pipeline(run.pipeline, run.run_dir, views=views)
+    print(f"evaluated {len(views)} views in {time.perf_counter() - started:.1f} s", file=sys.stderr)
     return metrics
 
 
@@ -62,13 +61,9 @@ def train_and_evaluate(cfg: PipelineConfig, run_dir: Path | None = None) -> RunR
     with open_run(with_scene(cfg), run_dir,
                   evaluator=lambda pipeline: quick_eval(pipeline, cfg.trainer.eval_views)) as run:
         with recording_failures(run.run_dir):
-            first, started = run.trainer.step, time.perf_counter()
             run.trainer.train()
-            steps = run.trainer.step - first
-            per_step = (time.perf_counter() - started) / steps if steps else None
             if run.finished:
-                total = per_step * run.pipeline.config.trainer.max_iters if per_step else None
-                metrics = final_evaluation(run, total)
+                metrics = final_evaluation(run)
                 metrics["step"] = run.trainer.step
                 write_status(run.run_dir, "finished", step=run.trainer.step)  # before the report shows it
                 write_metrics(run.run_dir, metrics)

@@ -5,7 +5,7 @@ keys), every cell's budget, and the budget check."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from rainyscape.bench.budget import Budget, Mismatch, cell_budget, check_budgets
@@ -14,7 +14,7 @@ from rainyscape.bench.options import BenchOptions
 from rainyscape.bench.scenes import ScenePlan, plan_scene
 from rainyscape.bench.sets import scene_set
 from rainyscape.config.overrides import uses_cuda
-from rainyscape.config.schema import PROFILES
+from rainyscape.config.schema import check_range
 from rainyscape.errors import ConfigError
 
 PLAIN_FIELDS = ("nerf", "3dgs")  # ceiling=auto: the fields without a rain model
@@ -105,6 +105,12 @@ def scene_shape(plan: ScenePlan, cfg) -> tuple[int, int, int]:
     from rainyscape.engine.pipeline import load_scene
 
     scene = load_scene(cfg, Path(plan.folder))
+    if scene.clean_images is None:  # every cell would score n/a, and say nothing
+        raise ConfigError(
+            f"{plan.folder}: the {scene.metadata.get('dataparser', cfg.dataparser.name)} parser finds no "
+            "clean images there, and rs-bench scores every cell against them; put them beside the rainy "
+            "images as a '_wo_rain' sibling folder (images_rain/ -> images_wo_rain/), or train it with "
+            "rs-train, which takes dataparser.clean=FOLDER")
     return scene.width, scene.height, len(scene.train_indices)
 
 
@@ -120,26 +126,33 @@ def plan_budgets(cells: list[Cell], plans: dict[str, ScenePlan]) -> dict[str, Bu
     return budgets
 
 
+def check_options(opts: BenchOptions) -> None:
+    """Every option's range or choices (the command line checks them too; this covers options
+    built in code), and that the device is there: a cell on a missing device would fail only
+    after the scenes were simulated."""
+    for f in fields(BenchOptions):
+        check_range(getattr(opts, f.name), f.metadata, f.name)
+    if uses_cuda(opts.device):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device={opts.device}: CUDA is not available here (device=cpu or auto)")
+
+
 def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
     """Everything about a benchmark that is known before it runs; raises ConfigError on a bad
     option, method or override, and on unequal budgets within a field (unless
     ``opts.allow_unequal``)."""
+    check_options(opts)
     methods = [m.strip() for m in opts.methods.split(",") if m.strip()]
     if not methods:
         raise ConfigError("rs-bench: methods= lists no method")
-    if opts.iters < 0:
-        raise ConfigError(f"rs-bench: iters must be >= 0, got {opts.iters}")
-    for key in ("scene_width", "scene_height", "scene_rows", "scene_cols"):
-        if getattr(opts, key) < 0:
-            raise ConfigError(f"rs-bench: {key} must be >= 0, got {getattr(opts, key)}")
     sset = scene_set(opts.scenes)
-    if opts.profile not in ("auto", *PROFILES):
-        raise ConfigError(f"rs-bench: profile must be auto, {' or '.join(PROFILES)}, got '{opts.profile}'")
     # The recipe is fixed here, for every cell alike, so that the budgets checked below are the
     # ones the cells train with (and a cell's fingerprint says which recipe it ran).
     profile = opts.profile if opts.profile != "auto" else "gpu" if uses_cuda(opts.device) else "cpu"
-    # A table measures every view: no time limit on the cells' end-of-run evaluation.
-    base = [f"profile={profile}", "trainer.final_eval_views=0", "trainer.final_eval_share=0"]
+    # A table measures every view: the cells evaluate every view at the end of their run.
+    base = [f"profile={profile}", "trainer.final_eval_views=0"]
     base += fixed_length(opts.iters) if opts.iters else []
     every = list(dict.fromkeys(methods + ([opts.ablation_method] if opts.ablation else [])))
     overrides, own = split_method_overrides(overrides, every)

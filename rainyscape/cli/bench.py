@@ -18,6 +18,11 @@ and resumes interrupted ones. jobs=N trains N cells at once, each with threads= 
 scene re-rendered), the rainy input, each method, each fused row with its gain over the input
 and its random-mask control, and a budget column (docs/evaluation.md, "How to read the
 tables"); with ablation=SCENE, the loss ablation of ablation_method (the paper's Table II).
+
+In OUT, a benchmark writes only its own NAME.json, NAME.md, runs/NAME/ and scenes/ (each
+recognised by what rs-bench writes in it); a file of other origin in their place is refused,
+naming it, before anything runs, unless force=true, which starts benchmark NAME afresh. A
+second rs-bench of the same OUT and NAME while one runs is refused (the benchmark is locked).
 """
 
 from __future__ import annotations
@@ -28,7 +33,8 @@ from rainyscape.bench.options import BenchOptions
 from rainyscape.cli import run_cli
 from rainyscape.cli.args import Command, parse, print_help
 
-COMMAND = Command("rs-bench", __doc__, BenchOptions, overrides="dotted")
+COMMAND = Command("rs-bench", __doc__, BenchOptions, overrides="dotted",
+                  oom_hint="train fewer cells at once (jobs=) or smaller scenes (scene_width=)")
 
 
 def main(argv: list[str]) -> int:

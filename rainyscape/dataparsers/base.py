@@ -21,14 +21,14 @@ MIN_IMAGE_SIDE = 4  # smaller images are refused (nothing sensible trains on the
 class CommonParserConfig:
     """Options every dataparser accepts (each parser's Config subclasses this)."""
 
-    holdout_every: int = bounded(8, 0)  # every k-th view is held out for novel-view evaluation (0: none)
+    holdout_every: int = bounded(8, 0, 100_000)  # every k-th view is held out for novel-view evaluation (0: none)
     # or a text file listing the held-out images, one a line: names, stems or paths relative
     # to the scene (as transforms.json writes them); a relative file path is looked up in the
     # working folder, then in the scene folder
     holdout_file: str = ""
-    downscale: int = bounded(1, 1)  # integer image downscale factor (area averaging)
+    downscale: int = bounded(1, 1, 1024)  # integer image downscale factor (area averaging)
     normalize: bool = True  # centre where the cameras look; farthest camera at camera_radius
-    camera_radius: float = bounded(3.0, above=0.0)
+    camera_radius: float = bounded(3.0, hi=1e6, above=0.0)
 
 
 class ImageIndex:

@@ -39,7 +39,7 @@ class MayaCsvConfig(CommonParserConfig):
     depth_key: str = "depth"
     rain: str = "rain"  # folder of <stem>.png RGBA rain layers ("" or missing: none)
     points_from_depth: bool = True  # sparse points for 3DGS: back-projected depth samples
-    max_points: int = bounded(20000, 0)
+    max_points: int = bounded(20000, 0, 10_000_000)
     check_units: bool = True  # reject radians / inches that would silently give wrong cameras
 
 

@@ -259,11 +259,16 @@ class TransformsJsonParser(DataParser):
         if not frames or not isinstance(frames, list):
             raise DataError(f"{json_path}: no 'frames' list")
         images, cams, files, listed = [], [], [], []
+        seen: dict[Path, int] = {}
         for i, frame in enumerate(frames):
             where = f"{json_path}, frame {i}"
             if not isinstance(frame, dict) or "file_path" not in frame:
                 raise DataError(f"{where}: no file_path")
             listed.append(resolve_image(root, str(frame["file_path"])))
+            if listed[-1] in seen:  # one photo, two poses: the views would contradict each other
+                raise DataError(f"{json_path}: frames {seen[listed[-1]]} and {i} both use the image "
+                                f"{frame['file_path']}; each frame needs its own image")
+            seen[listed[-1]] = i
             file = self._moved(root / cfg.images, listed[-1]) if cfg.images else listed[-1]
             img = read_rgb(file)
             cam = frame_camera(meta, frame, where, (img.shape[1], img.shape[0]))

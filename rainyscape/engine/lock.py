@@ -28,10 +28,10 @@ except ImportError:  # pragma: no cover - not on Linux / macOS
 LOCK_NAME = "run.lock"
 
 
-def holder_info(run_dir: Path) -> dict:
-    """What the lock file says about its holder (empty when unreadable)."""
+def holder_info(run_dir: Path, name: str = LOCK_NAME) -> dict:
+    """What the lock file ``run_dir/name`` says about its holder (empty when unreadable)."""
     try:
-        data = json.loads((Path(run_dir) / LOCK_NAME).read_text() or "{}")
+        data = json.loads((Path(run_dir) / name).read_text() or "{}")
     except (OSError, ValueError):
         return {}
     return data if isinstance(data, dict) else {}
@@ -49,11 +49,16 @@ def describe_holder(info: dict) -> str:
 
 
 class RunLock:
-    """``with RunLock(run_dir, "rs-train"):`` holds the folder's lock (RunBusyError if taken)."""
+    """``with RunLock(run_dir, "rs-train"):`` holds the folder's lock (RunBusyError if taken).
 
-    def __init__(self, run_dir: Path, command: str = ""):
+    ``name``: the lock file in the folder (rs-bench locks one benchmark of its results folder
+    with ``.NAME.lock``); ``label``: what the refusal names (default: the folder)."""
+
+    def __init__(self, run_dir: Path, command: str = "", name: str = LOCK_NAME, label: str = ""):
         self.run_dir = Path(run_dir)
-        self.path = self.run_dir / LOCK_NAME
+        self.name = name
+        self.path = self.run_dir / name
+        self.label = label or str(self.run_dir)
         self.command = command or Path(sys.argv[0]).name or "python"
         self.fd: int | None = None
 
@@ -63,15 +68,15 @@ class RunLock:
         try:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
-            raise RainyScapeError(f"{self.run_dir}: cannot open the run's lock file "
-                                  f"({exc.strerror or exc})") from None
+            raise RainyScapeError(f"{self.path}: cannot open the lock file "
+                                  f"({(exc.strerror or str(exc)).lower()})") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             os.close(fd)
-            info = holder_info(self.run_dir)
+            info = holder_info(self.run_dir, self.name)
             raise RunBusyError(
-                f"{self.run_dir}: in use by {describe_holder(info)}; wait until it ends"
+                f"{self.label}: in use by {describe_holder(info)}; wait until it ends"
                 + (f" or stop it (kill {info['pid']})" if info.get("pid") and
                    info.get("host", socket.gethostname()) == socket.gethostname() else "")) from None
         info = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,

@@ -23,15 +23,17 @@ from typing import Callable, Iterator
 
 from rainyscape import config as config_mod
 from rainyscape.config import PipelineConfig, with_run_length
-from rainyscape.engine.checkpoint import (checkpoint_path, load_checkpoint, load_newest_valid,
-                                          remove_partial_writes)
+from rainyscape.engine.checkpoint import (checkpoint_path, list_checkpoints, load_checkpoint,
+                                          load_newest_valid, remove_partial_writes)
 from rainyscape.engine.lock import RunLock, is_locked
 from rainyscape.engine.pipeline import Pipeline, build_pipeline, load_scene, resolve_device
-from rainyscape.engine.run_dir import new_run_dir
+from rainyscape.engine.run_dir import (CHECKPOINTS, CONFIG_FILE, NewRunDir, check_output_dir,
+                                       check_run_folder, new_run_dir)
 from rainyscape.engine.snapshot import restore_models
 from rainyscape.engine.trainer import Trainer, seed_everything
 from rainyscape.errors import ConfigError, DataError, RainyScapeError
 from rainyscape.formats.atomic import write_text_atomic
+from rainyscape.formats.output import check_writable
 
 
 @dataclass
@@ -49,6 +51,7 @@ class Run:
     pipeline: Pipeline
     trainer: Trainer
     lock: RunLock | None = None
+    created: NewRunDir | None = None  # a new run: the folder (and parents) this process made
 
     @property
     def finished(self) -> bool:
@@ -61,8 +64,16 @@ class Run:
     def __enter__(self) -> "Run":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            # A new run that failed before its first checkpoint holds nothing to resume or
+            # keep: leave trainer.output_dir as it was. (Ctrl-C saves a checkpoint; a run with
+            # checkpoints keeps its folder, status "failed", to be resumed.)
+            if (exc_type is not None and not issubclass(exc_type, KeyboardInterrupt)
+                    and self.created is not None and not list_checkpoints(self.run_dir / CHECKPOINTS)):
+                self.created.remove()
+        finally:
+            self.close()
 
 
 def write_status(run_dir: Path, state: str, **extra) -> None:
@@ -121,10 +132,16 @@ def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
     """A new run folder for ``cfg`` (or ``run_dir`` reopened to resume): locked, scene,
     pipeline and trainer built, checkpoint loaded. ``evaluator(pipeline)`` is the trainer's
     periodic evaluation. Input errors surface before any folder is made; a folder another
-    process trains in raises RunBusyError before anything in it changes. Close the run
-    (``with open_run(...) as run``) to release the lock."""
+    process trains in raises RunBusyError before anything in it changes, and so does anything
+    that fails before training starts (a resume that does not fit leaves config.yml and
+    status.json as they were). Close the run (``with open_run(...) as run``) to release the
+    lock."""
     device = resolve_device(cfg.trainer.device)
-    lock = None
+    if run_dir is None:
+        check_output_dir(cfg.trainer.output_dir)
+    else:
+        check_writable(run_dir, "a resume writes checkpoints, log.jsonl, status.json and config.yml there")
+    lock, created = None, None
     if run_dir is not None:  # lock first: nothing in a busy folder may change
         lock = RunLock(run_dir, "rs-train").acquire()
     try:
@@ -132,40 +149,41 @@ def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
         scene = load_scene(cfg, scene_folder(cfg))
         cfg = with_run_length(cfg, len(scene.train_indices))
         if run_dir is None:
-            run_dir = new_run_dir(cfg.trainer.output_dir, scene.name, cfg.method)
+            created = new_run_dir(cfg.trainer.output_dir, scene.name, cfg.method)
+            run_dir = created.path
             lock = RunLock(run_dir, "rs-train").acquire()
         run_dir = Path(run_dir)
         previous = read_status(run_dir)  # before it is overwritten: a dead owner shows here
-        remove_partial_writes(run_dir / "checkpoints")
-        config_mod.save_yaml(cfg, run_dir / "config.yml")
+        pipeline = build_pipeline(cfg, scene, device)
+        evaluate = None if evaluator is None else (lambda: evaluator(pipeline))
+        trainer = Trainer(pipeline, run_dir, evaluate)
+        used = trainer.load() if any((run_dir / CHECKPOINTS).glob("step-*.pt")) else None
+        # Everything is checked: only now does the folder change.
+        remove_partial_writes(run_dir / CHECKPOINTS)
+        config_mod.save_yaml(cfg, run_dir / CONFIG_FILE)
         write_status(run_dir, "running")
-        with recording_failures(run_dir):
-            pipeline = build_pipeline(cfg, scene, device)
-            evaluate = None if evaluator is None else (lambda: evaluator(pipeline))
-            trainer = Trainer(pipeline, run_dir, evaluate)
-            if previous.get("state") == "interrupted" and previous.get("note"):
-                print(f"rainyscape: {run_dir}: {previous['note'].split(';')[0]}", file=sys.stderr)
-            if any((run_dir / "checkpoints").glob("step-*.pt")):
-                used = trainer.load()
-                print(f"resuming {run_dir} from {used.name} (step {trainer.step})", file=sys.stderr)
-            elif previous:
-                print(f"rainyscape: {run_dir}: no checkpoint yet; training again from step 0",
-                      file=sys.stderr)
+        if previous.get("state") == "interrupted" and previous.get("note"):
+            print(f"rainyscape: {run_dir}: {previous['note'].split(';')[0]}", file=sys.stderr)
+        if used is not None:
+            print(f"resuming {run_dir} from {used.name} (step {trainer.step})", file=sys.stderr)
+        elif previous:
+            print(f"rainyscape: {run_dir}: no checkpoint yet; training again from step 0",
+                  file=sys.stderr)
     except BaseException:
         if lock is not None:
             lock.release()
+        if created is not None:
+            created.remove()
         raise
-    return Run(run_dir, pipeline, trainer, lock)
+    return Run(run_dir, pipeline, trainer, lock, created)
 
 
 def load_run(run_dir: Path, device: str = "auto", step: int | None = None,
              data: str | Path | None = None) -> tuple[Pipeline, int]:
     """Rebuild a run's pipeline from config.yml and load its latest readable (or given)
     checkpoint. ``data`` replaces the scene folder config.yml names (a moved scene)."""
-    run_dir = Path(run_dir)
-    if not (run_dir / "config.yml").is_file():
-        raise RainyScapeError(f"{run_dir}: not a run folder (no config.yml)")
-    cfg = config_mod.load_yaml(run_dir / "config.yml")
+    run_dir = check_run_folder(Path(run_dir))
+    cfg = config_mod.load_yaml(run_dir / CONFIG_FILE)
     if data:
         cfg = dataclasses.replace(cfg, data=str(data))
     dev = resolve_device(device)
@@ -173,9 +191,9 @@ def load_run(run_dir: Path, device: str = "auto", step: int | None = None,
     if not folder.exists():
         hint = "pass data=NEW_FOLDER" if not data else "check data="
         raise DataError(f"{folder}: the run's scene folder is not there (moved?); {hint} "
-                        f"(config.yml: {run_dir / 'config.yml'})")
+                        f"(config.yml: {run_dir / CONFIG_FILE})")
     pipeline = build_pipeline(cfg, load_scene(cfg, folder), dev)
-    ckpts = run_dir / "checkpoints"
+    ckpts = run_dir / CHECKPOINTS
     if step is not None:
         path = checkpoint_path(ckpts, step)
         if not path.is_file():

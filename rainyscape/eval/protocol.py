@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -153,25 +152,16 @@ def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict,
 
 
 def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: int = 0,
-                   views: list[int] | None = None, time_limit: float | None = None
-                   ) -> tuple[list[dict], list[ViewImages]]:
+                   views: list[int] | None = None) -> tuple[list[dict], list[ViewImages]]:
     """Per-view metrics of ``views`` (default: every view), and the images of the first
-    ``keep`` training views. With ``time_limit`` (seconds) no view starts that would, at the
-    mean time a view has taken, end after it, except the first of each split."""
+    ``keep`` training views."""
     lpips = lpips or load_lpips(pipeline.device)
     options, directions = angle_options(pipeline), true_rain_directions(pipeline)
     scene = pipeline.scene
     rows, kept = [], []
     if views is None:
         views = list(scene.train_indices) + list(scene.eval_indices)
-    start = time.perf_counter()
-    train = set(scene.train_indices)
     for i in progress(views, "evaluating views"):
-        split = "train" if i in train else "heldout"
-        elapsed = time.perf_counter() - start
-        if (time_limit is not None and rows and elapsed + elapsed / len(rows) > time_limit
-                and any(r["split"] == split for r in rows)):
-            continue
         v = view_images(pipeline, i)
         rows.append(view_metrics(v, lpips, options, fusion_controls(pipeline, v), directions))
         if v.split == "train" and len(kept) < keep:
@@ -180,16 +170,14 @@ def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: i
 
 
 @torch.no_grad()
-def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None, views: list[int] | None = None,
-                      time_limit: float | None = None) -> dict:
-    """The protocol on a trained pipeline, on ``views`` (default: every view; see
-    :func:`evaluate_views` for ``time_limit``); ``evaluated`` in the result names the views
-    measured. With ``run_dir`` it also saves the comparison strips of a few training views
-    under ``run_dir/renders/strips`` (used by the report)."""
+def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None, views: list[int] | None = None) -> dict:
+    """The protocol on a trained pipeline, on ``views`` (default: every view); ``evaluated`` in
+    the result says how many views were measured and names them. The result depends on the
+    weights and the views only (no time, no clock): two evaluations of the same weights give
+    the same metrics. With ``run_dir`` it also saves the comparison strips of a few training
+    views under ``run_dir/renders/strips`` (used by the report), once every view is measured."""
     lpips = load_lpips(pipeline.device)
-    started = time.perf_counter()
-    rows, kept = evaluate_views(pipeline, lpips, keep=STRIP_VIEWS if run_dir is not None else 0,
-                                views=views, time_limit=time_limit)
+    rows, kept = evaluate_views(pipeline, lpips, keep=STRIP_VIEWS if run_dir is not None else 0, views=views)
     for v in kept:
         save_strip(v, Path(run_dir) / "renders" / "strips" / f"{Path(v.name).stem}.png")
     scene = pipeline.scene
@@ -205,8 +193,7 @@ def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None, views: li
         "evaluated": {"views": [r["view"] for r in rows],
                       "train": sum(r["split"] == "train" for r in rows),
                       "heldout": sum(r["split"] == "heldout" for r in rows),
-                      "all": len(rows) == scene.num_images,
-                      "seconds": round(time.perf_counter() - started, 2)},
+                      "all": len(rows) == scene.num_images},
         "summary": summarize(rows),
         "per_view": rows,
     }

@@ -11,7 +11,6 @@ import io
 import json
 from pathlib import Path
 
-from rainyscape.errors import RainyScapeError
 from rainyscape.formats.atomic import write_text_atomic
 
 METRICS = ("psnr", "ssim", "lpips")
@@ -173,7 +172,7 @@ def metric_rows(summary: dict, postprocess: list[str]) -> list[tuple[str, dict]]
 def metric_table(metrics: dict) -> str:
     rows = metric_rows(metrics.get("summary", {}), metrics.get("postprocess", []))
     if not rows:
-        return "<p>No metrics against clean images (the scene has none).</p>"
+        return "<p>No metrics against clean images (the scene has none).</p>" + evaluated_note(metrics)
     head = "<tr><th></th><th>PSNR ↑</th><th>SSIM ↑</th><th>LPIPS ↓</th></tr>"
     body = "".join(
         f"<tr><td>{html.escape(label)}</td><td>{_fmt(v['psnr'], 2)}</td><td>{_fmt(v['ssim'])}</td>"
@@ -182,14 +181,24 @@ def metric_table(metrics: dict) -> str:
     lp = metrics.get("lpips", {})
     if lp and not lp.get("available", False):
         note = f"<p class='note'>LPIPS unavailable: {html.escape(lp.get('reason', ''))}.</p>"
-    done = metrics.get("evaluated", {})
-    if done and not done.get("all", True):
-        views = metrics.get("views", {})
-        total = views.get("train", 0) + views.get("heldout", 0)
-        note += (f"<p class='note'>Measured on {len(done.get('views', []))} of {total} views "
-                 f"({done.get('train', 0)} training, {done.get('heldout', 0)} held-out; the bounded "
-                 "evaluation at the end of rs-train). rs-eval RUN_DIR measures every view.</p>")
+    note += evaluated_note(metrics)
     return f"<table>{head}{body}</table>{note}"
+
+
+def evaluated_note(metrics: dict) -> str:
+    """How many views the metrics were measured on, and which."""
+    done = metrics.get("evaluated", {})
+    if not done:
+        return ""
+    views = metrics.get("views", {})
+    total = views.get("train", 0) + views.get("heldout", 0)
+    names = ", ".join(html.escape(str(v)) for v in done.get("views", []))
+    if done.get("all", True):
+        return f"<p class='note'>Measured on every view ({total}).</p>"
+    return (f"<p class='note'>Measured on {len(done.get('views', []))} of {total} views: {names} "
+            f"({done.get('train', 0)} training, {done.get('heldout', 0)} held-out; the fixed subset "
+            "of the evaluation at the end of rs-train, trainer.final_eval_views). rs-eval RUN_DIR "
+            "measures every view.</p>")
 
 
 def rain_table(summary: dict) -> str:
@@ -250,9 +259,9 @@ def _max_iters(run_dir: Path) -> str:
 
 
 def build_report(run_dir: Path) -> str:
-    run_dir = Path(run_dir)
-    if not (run_dir / "config.yml").is_file():
-        raise RainyScapeError(f"{run_dir}: not a run folder (no config.yml)")
+    from rainyscape.engine.run_dir import check_run_folder
+
+    run_dir = check_run_folder(Path(run_dir))
     metrics = _read_json(run_dir / "metrics.json")
     from rainyscape.engine.run import read_status  # a dead owner's "running" reads as interrupted
 
