@@ -32,6 +32,7 @@ from rainyscape.engine.snapshot import restore_models
 from rainyscape.engine.trainer import Trainer, seed_everything
 from rainyscape.errors import ConfigError, DataError, RainyScapeError
 from rainyscape.formats.atomic import write_text_atomic
+from rainyscape.scene import SceneData
 
 
 @dataclass
@@ -117,12 +118,14 @@ def scene_folder(cfg: PipelineConfig) -> Path:
 
 
 def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
-             evaluator: Callable[[Pipeline], dict] | None = None) -> Run:
+             evaluator: Callable[[Pipeline], dict] | None = None,
+             prepare_scene: Callable[[SceneData], SceneData] | None = None) -> Run:
     """A new run folder for ``cfg`` (or ``run_dir`` reopened to resume): locked, scene,
     pipeline and trainer built, checkpoint loaded. ``evaluator(pipeline)`` is the trainer's
-    periodic evaluation. Input errors surface before any folder is made; a folder another
-    process trains in raises RunBusyError before anything in it changes. Close the run
-    (``with open_run(...) as run``) to release the lock."""
+    periodic evaluation; ``prepare_scene(scene)`` completes the parsed scene before the
+    pipeline is built (the workflow adds sparse points there). Input errors surface before
+    any folder is made; a folder another process trains in raises RunBusyError before
+    anything in it changes. Close the run (``with open_run(...) as run``) to release the lock."""
     device = resolve_device(cfg.trainer.device)
     lock = None
     if run_dir is not None:  # lock first: nothing in a busy folder may change
@@ -130,6 +133,8 @@ def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
     try:
         seed_everything(cfg.trainer.seed)
         scene = load_scene(cfg, scene_folder(cfg))
+        if prepare_scene is not None:
+            scene = prepare_scene(scene)
         if run_dir is None:
             run_dir = new_run_dir(cfg.trainer.output_dir, scene.name, cfg.method)
             lock = RunLock(run_dir, "rs-train").acquire()
