@@ -128,5 +128,6 @@ class ColmapParser(DataParser):
         return assemble_scene(cfg, name=root.resolve().name, source=root,
                               images=torch.from_numpy(stack), cameras=cameras,
                               image_names=[v.name for v in views], points=points,
-                              point_colors=colors, near=near, far=far, metadata=metadata,
+                              point_colors=colors, points_source="colmap model", near=near, far=far,
+                              metadata=metadata,
                               image_files=[image_dir / v.name for v in views])
