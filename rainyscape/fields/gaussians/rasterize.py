@@ -1,10 +1,12 @@
 """One rasterisation entry point with a gsplat-like signature; picks the backend.
 
 ``backend="auto"`` uses gsplat (CUDA) when the tensors are on a CUDA device and gsplat
-works there, and the tiled torch rasteriser otherwise (CPU, or CUDA without a working
-gsplat: one warning says so).
-The torch path first culls, cheaply and without gradients, the Gaussians that cannot be
-in view, and projects, colours and composites the rest only.
+works there; on the CPU the compiled kernel (``cpp``, rasterize_cpp.py) when it was built,
+else the tiled torch rasteriser (also the one for CUDA without a working gsplat: one
+warning says so). The CPU paths first cull, cheaply and without gradients, the Gaussians
+that cannot be in view, and project, colour and composite the rest only; ``cpp`` replaces
+the torch path's compositing only, for float32 (float64 renders fall back to the torch
+compositor, which the tests use as the tight reference).
 """
 
 from __future__ import annotations
@@ -18,10 +20,12 @@ from rainyscape.cameras import Window
 from rainyscape.errors import ConfigError
 from rainyscape.fields.gaussians.projection import candidate_gaussians, project_gaussians
 from rainyscape.fields.gaussians.rasterize_gsplat import gsplat_usable, rasterize_gsplat
+from rainyscape.fields.gaussians.rasterize_cpp import (composite_cpp, cpp_available,
+                                                      unavailable_reason)
 from rainyscape.fields.gaussians.rasterize_torch import composite
 from rainyscape.fields.gaussians.sh import sh_to_rgb
 
-BACKENDS = ("auto", "torch", "gsplat")
+BACKENDS = ("auto", "torch", "cpp", "gsplat")
 
 
 @dataclass
@@ -36,11 +40,19 @@ class Rasterized:
 def resolve_backend(backend: str, device: torch.device) -> str:
     """The rasteriser for ``backend`` on ``device``. ``auto`` on CUDA uses gsplat when it works
     (the first use builds its kernels, with a message) and otherwise the torch rasteriser,
-    after one warning; an explicit ``gsplat`` that cannot run is a one-line ConfigError."""
+    after one warning; on the CPU the compiled kernel when it imports, else torch. An
+    explicit ``gsplat`` or ``cpp`` that cannot run is a one-line ConfigError."""
     if backend not in BACKENDS:
         raise ConfigError(f"rasteriser backend '{backend}' is not one of {', '.join(BACKENDS)}")
     if backend == "auto":
-        return "gsplat" if device.type == "cuda" and gsplat_usable(device) else "torch"
+        if device.type == "cuda":
+            return "gsplat" if gsplat_usable(device) else "torch"
+        return "cpp" if device.type == "cpu" and cpp_available() else "torch"
+    if backend == "cpp" and device.type != "cpu":
+        raise ConfigError("field.backend=cpp: it needs CPU tensors; use field.backend=auto or torch")
+    if backend == "cpp" and not cpp_available():
+        raise ConfigError(f"field.backend=cpp: {unavailable_reason()}; reinstall with a C++ "
+                          "compiler present (pip install -e .) or use field.backend=auto or torch")
     if backend == "gsplat":
         why = ("it needs CUDA tensors" if device.type != "cuda"
                else "" if gsplat_usable(device) else "gsplat does not work here (see the warning above)")
@@ -80,7 +92,8 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
         zeros = torch.zeros(c, dtype=torch.long)
         window = Window(zeros, zeros.clone(), width, height)
     x0, y0 = window.x0.to(means.device), window.y0.to(means.device)
-    if resolve_backend(backend, means.device) == "gsplat":
+    name = resolve_backend(backend, means.device)
+    if name == "gsplat":
         if sh_degree is not None:
             colors = colors_from_sh(colors, means, viewmats, sh_degree)
         rgb, alpha, depth, means2d, radii = rasterize_gsplat(
@@ -114,7 +127,8 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
             proj.means2d = means2d.index_select(1, ids)
             radii = radii.new_zeros(c, n, 2).index_copy_(1, ids, radii)
         features = torch.cat([colors, proj.depths[..., None]], -1)
-        out, alpha = composite(proj, features, window.width, window.height)
+        compositor = composite_cpp if name == "cpp" and means.dtype == torch.float32 else composite
+        out, alpha = compositor(proj, features, window.width, window.height)
         rgb = out[..., :3]
         depth = out[..., 3:] / alpha.clamp_min(1e-10)
     if backgrounds is not None:
