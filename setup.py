@@ -33,7 +33,7 @@ class BuildExt(build_ext):
 setup(
     ext_modules=[Extension(
         "rainyscape.fields.gaussians._rasterize_cpp",
-        sources=[f"{CSRC}/module.cpp", f"{CSRC}/kernel.cpp"],
+        sources=[f"{CSRC}/module.cpp", f"{CSRC}/kernel.cpp", f"{CSRC}/projection.cpp"],
         depends=[f"{CSRC}/kernel.h", f"{CSRC}/kernel_common.h", f"{CSRC}/composite_impl.h"],
         language="c++",
         optional=True,

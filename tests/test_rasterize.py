@@ -15,6 +15,7 @@ from rainyscape.cameras import Window
 from rainyscape.errors import ConfigError
 from rainyscape.fields.gaussians.projection import candidate_gaussians, project_gaussians
 from rainyscape.fields.gaussians.rasterize import rasterize, resolve_backend
+from rainyscape.fields.gaussians.rasterize_cpp import cpp_available
 from rainyscape.fields.gaussians.rasterize_gsplat import (BUILD_MESSAGE, forget_gsplat_checks,
                                                           gsplat_installed, gsplat_usable)
 from rainyscape.fields.gaussians.rasterize_torch import bin_gaussians, composite, min_sigma_in_boxes
@@ -262,7 +263,10 @@ def test_background_empty_and_culled_scenes():
 
 
 def test_backend_choice():
-    assert resolve_backend("auto", torch.device("cpu")) == "torch"
+    # On the CPU, auto is the compiled kernel when it was built (tests/test_rasterize_cpp.py
+    # checks that it was, where a compiler is present), else the torch rasteriser.
+    assert resolve_backend("auto", torch.device("cpu")) == ("cpp" if cpp_available() else "torch")
+    assert resolve_backend("torch", torch.device("cpu")) == "torch"
     with pytest.raises(ConfigError):
         resolve_backend("gsplat", torch.device("cpu"))
     with pytest.raises(ConfigError):

@@ -1,13 +1,16 @@
-"""The compiled CPU rasteriser: binning and front-to-back compositing of projected
-Gaussians, forward and backward, in C++ (csrc/, built by setup.py at install time).
+"""The compiled CPU rasteriser (csrc/, built by setup.py at install time): EWA projection,
+binning and front-to-back compositing of Gaussians, forward and backward, in C++.
 
-A drop-in for :func:`rasterize_torch.composite` on float32 CPU tensors: the same pixel
-centres, opacity-aware extent, alpha = min(0.999, o exp(-sigma)) with alpha <= 1/255
-skipped, the 1e-4 transmittance stop and the alpha output; the backward pass gives the
-gradients of the 2D means, conics, opacities and features. Its cost is bounded for large
-Gaussians: each pixel stops on its own, a Gaussian is evaluated on its ellipse's pixel span
-of each row only, and listed only in the tiles its ellipse reaches (see csrc/kernel.cpp).
-Threads: ``torch.get_num_threads()`` (std::thread, no second OpenMP runtime).
+Drop-ins for :func:`projection.project_gaussians` and :func:`rasterize_torch.composite` on
+float32 CPU tensors, with the same conventions: pixel centres, Jacobian clamp, dilation,
+opacity-aware extent, alpha = min(0.999, o exp(-sigma)) with alpha <= 1/255 skipped, the
+1e-4 transmittance stop, the alpha output. The backward passes give the gradients of the
+means, quaternions and scales (projection) and of the 2D means, conics, opacities and
+features (compositing), so that the 2D means' gradient that densification reads is there.
+The compositing's cost is bounded for large Gaussians: each pixel stops on its own, a
+Gaussian is listed only in the tiles its ellipse reaches and evaluated on its ellipse's
+pixel span of each row (see csrc/kernel.cpp). Threads: ``torch.get_num_threads()``
+(std::thread; no second OpenMP runtime next to torch's).
 """
 
 from __future__ import annotations
@@ -37,63 +40,115 @@ def unavailable_reason() -> str:
     return "" if _ext is not None else f"the compiled rasteriser did not import ({_IMPORT_ERROR})"
 
 
-def _flat(proj: Projection) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Contiguous float32 means2d (M, 2), conics (M, 3), opacities (M,), int32 radii (M, 2)
-    and the per-camera depth order (C, N) int64 (ties by index, as the torch path)."""
+def simd() -> str:
+    """The build of the compositing that runs on this CPU (e.g. 'avx2 (8 lanes)')."""
+    return _ext.simd() if _ext is not None else ""
+
+
+def _ready(t: Tensor) -> Tensor:
+    """A contiguous float32 CPU tensor with no autograd history (the kernel reads it by
+    pointer; keeping a detached tensor keeps the memory alive without a graph cycle)."""
+    t = t.detach()
+    if t.device.type != "cpu" or t.dtype != torch.float32:
+        raise ValueError("the cpp rasteriser takes float32 CPU tensors")
+    return t.contiguous()
+
+
+class _ProjectCpp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, views):
+        arrays = [_ready(t) for t in (means, quats, scales, opacities)]
+        views_arg, keep = views
+        c, n = views_arg[3], means.shape[0]
+        means2d = torch.empty(c, n, 2)
+        conics = torch.empty(c, n, 3)
+        depths = torch.empty(c, n)
+        radii = torch.empty(c, n, 2, dtype=torch.int32)
+        _ext.project(*(t.data_ptr() for t in arrays), n, views_arg, means2d.data_ptr(),
+                     conics.data_ptr(), depths.data_ptr(), radii.data_ptr(),
+                     torch.get_num_threads())
+        ctx.arrays, ctx.views = arrays[:3], views
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, radii
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, _g_radii):
+        means, quats, scales = ctx.arrays
+        views_arg, _keep = ctx.views
+        grads = [torch.zeros_like(t) for t in (means, quats, scales)]
+        incoming = [(torch.zeros(shape) if g is None else _ready(g))
+                    for g, shape in ((g_means2d, (views_arg[3], len(means), 2)),
+                                     (g_conics, (views_arg[3], len(means), 3)),
+                                     (g_depths, (views_arg[3], len(means))))]
+        _ext.project_backward(means.data_ptr(), quats.data_ptr(), scales.data_ptr(), len(means),
+                              views_arg, *(g.data_ptr() for g in incoming),
+                              *(g.data_ptr() for g in grads), torch.get_num_threads())
+        ctx.arrays = ctx.views = None
+        return (*grads, None, None)
+
+
+def project_cpp(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
+                viewmats: Tensor, Ks: Tensor, width: int, height: int, window_x0: Tensor,
+                window_y0: Tensor, window_width: int, window_height: int,
+                near_plane: float = 0.01, far_plane: float = 1e10,
+                eps2d: float = 0.3) -> Projection:
+    """As :func:`projection.project_gaussians` (opacities (N,); no gradient for the
+    cameras), in C++."""
+    if _ext is None:
+        raise RuntimeError(unavailable_reason())
+    c = viewmats.shape[0]
+    offsets = torch.stack([window_x0, window_y0], -1).to(torch.float32).contiguous()
+    cams = [_ready(viewmats), _ready(Ks), offsets]
+    views = ((*(t.data_ptr() for t in cams), c, width, height, window_width, window_height,
+              near_plane, far_plane, eps2d), cams)  # cams: keeps the pointed-to memory alive
+    means2d, conics, depths, radii = _ProjectCpp.apply(means, quats, scales, opacities, views)
+    return Projection(means2d, conics, depths, opacities[None].expand(c, -1), radii)
+
+
+def _bin(proj: Projection, width: int, height: int, threads: int):
+    """The kernel's binning of a projection: (binning, the arrays it points into)."""
     c, n = proj.radii.shape[:2]
-    order = torch.argsort(proj.depths.detach().reshape(c, n), dim=1, stable=True)
-    return (proj.means2d.reshape(c * n, 2), proj.conics.reshape(c * n, 3),
-            proj.opacities.reshape(c * n), proj.radii.reshape(c * n, 2).to(torch.int32).contiguous(),
-            order.contiguous())
-
-
-def _check(*tensors: Tensor) -> None:
-    for t in tensors:
-        if t.device.type != "cpu" or t.dtype != torch.float32 or not t.is_contiguous():
-            raise ValueError("the cpp rasteriser takes contiguous float32 CPU tensors")
-
-
-def _bin(means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, order: Tensor,
-         cameras: int, width: int, height: int, threads: int):
-    _check(means2d, conics, opacities)
-    return _ext.bin(means2d.data_ptr(), conics.data_ptr(), opacities.data_ptr(),
-                    radii.data_ptr(), order.data_ptr(), cameras, order.shape[1], width, height,
-                    threads)
+    arrays = [_ready(t).reshape(c * n, k) for t, k in ((proj.means2d, 2), (proj.conics, 3),
+                                                      (proj.opacities, 1), (proj.depths, 1))]
+    radii = proj.radii.to(torch.int32).contiguous()
+    means2d, conics, opacities, depths = arrays
+    b = _ext.bin(means2d.data_ptr(), conics.data_ptr(), opacities.data_ptr(), radii.data_ptr(),
+                 depths.data_ptr(), c, n, width, height, threads)
+    return b, arrays
 
 
 @torch.no_grad()
 def binning_pairs(proj: Projection, width: int, height: int) -> int:
     """Gaussian-tile pairs of the kernel's binning (exact ellipse-tile test), for benchmarks."""
-    means2d, conics, opacities, radii, order = _flat(proj)
-    arrays = [t.detach().float().contiguous() for t in (means2d, conics, opacities)]
-    b = _bin(*arrays, radii, order, proj.radii.shape[0], width, height, torch.get_num_threads())
-    return _ext.pairs(b)
+    proj = Projection(*(t.float() if t.is_floating_point() else t
+                        for t in (proj.means2d, proj.conics, proj.depths, proj.opacities,
+                                  proj.radii)))
+    return _ext.pairs(_bin(proj, width, height, torch.get_num_threads())[0])
 
 
 class _CompositeCpp(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, radii, order, cameras, width, height):
+    def forward(ctx, means2d, conics, opacities, features, proj, width, height):
         threads = torch.get_num_threads()
-        # Detached views keep the arrays alive for the backward pass without a reference
-        # cycle through the graph; the kernel reads them by pointer.
-        arrays = [t.detach().contiguous() for t in (means2d, conics, opacities, features)]
-        _check(*arrays)
-        b = _bin(*arrays[:3], radii, order, cameras, width, height, threads)
-        channels = features.shape[1]
-        out = torch.empty(cameras, height, width, channels + 1)
-        _ext.forward(b, arrays[3].data_ptr(), channels, out.data_ptr(), threads)
-        ctx.binning, ctx.arrays, ctx.radii = b, arrays, radii
+        b, arrays = _bin(proj, width, height, threads)
+        feats = _ready(features)
+        c = proj.radii.shape[0]
+        out = torch.empty(c, height, width, feats.shape[1] + 1)
+        _ext.forward(b, feats.data_ptr(), feats.shape[1], out.data_ptr(), threads)
+        ctx.binning, ctx.arrays, ctx.features = b, arrays, feats
         return out
 
     @staticmethod
     def backward(ctx, g_out):
-        means2d, conics, opacities, features = ctx.arrays
-        g_out = g_out.to(torch.float32).contiguous()
-        grads = [torch.zeros_like(t) for t in ctx.arrays]
-        _ext.backward(ctx.binning, opacities.data_ptr(), features.data_ptr(), features.shape[1],
-                      g_out.data_ptr(), *(g.data_ptr() for g in grads), torch.get_num_threads())
-        ctx.binning = ctx.arrays = None
-        return (*grads, None, None, None, None, None)
+        _means2d, _conics, opacities, _depths = ctx.arrays
+        feats = ctx.features
+        g_out = _ready(g_out)
+        m = feats.shape[0]
+        grads = [torch.zeros(m, 2), torch.zeros(m, 3), torch.zeros(m), torch.zeros_like(feats)]
+        _ext.backward(ctx.binning, opacities.data_ptr(), feats.shape[1], g_out.data_ptr(),
+                      *(g.data_ptr() for g in grads), torch.get_num_threads())
+        ctx.binning = ctx.arrays = ctx.features = None
+        return (*grads, None, None, None)
 
 
 def composite_cpp(proj: Projection, features: Tensor, width: int,
@@ -103,8 +158,7 @@ def composite_cpp(proj: Projection, features: Tensor, width: int,
     if _ext is None:
         raise RuntimeError(unavailable_reason())
     c, n = proj.radii.shape[:2]
-    means2d, conics, opacities, radii, order = _flat(proj)
-    out = _CompositeCpp.apply(means2d, conics, opacities,
-                              features.reshape(c * n, features.shape[-1]), radii, order, c,
-                              width, height)
+    out = _CompositeCpp.apply(proj.means2d.reshape(c * n, 2), proj.conics.reshape(c * n, 3),
+                              proj.opacities.reshape(c * n),
+                              features.reshape(c * n, features.shape[-1]), proj, width, height)
     return out[..., :-1], out[..., -1:]

@@ -17,8 +17,7 @@ using detail::tile_box;
 namespace {
 
 constexpr int kLanes = RS_LANES;
-constexpr int kChunks = kPixels / kLanes;
-static_assert(kTile % kLanes == 0, "a tile row is a whole number of chunks");
+static_assert(kTile % kLanes == 0 && kTile >= kLanes, "a tile row holds whole vectors");
 
 // kLanes pixels of a tile row. Comparisons give lane masks (-1 / 0), `mask ? a : b`
 // selects per lane; every lane computes the same float operations as a scalar would.
@@ -44,16 +43,58 @@ inline void store(float* p, FV v) { std::memcpy(p, &v, sizeof v); }
 inline void store(int32_t* p, IV v) { std::memcpy(p, &v, sizeof v); }
 inline FV splat(float x) { return FV{} + x; }
 inline IV splat(int32_t x) { return IV{} + x; }
+// Sum of the lanes, halving the vector each step (shuffles instead of kLanes extracts).
+#if defined(__clang__)
+#define RS_SHUFFLE(v, ...) __builtin_shufflevector(v, v, __VA_ARGS__)
+#else
+#define RS_SHUFFLE(v, ...) __builtin_shuffle(v, IV{__VA_ARGS__})
+#endif
 inline float lane_sum(FV v) {
-  float total = 0.0f;
-  for (int j = 0; j < kLanes; ++j) total += v[j];
-  return total;
+#if RS_LANES == 8
+  v += RS_SHUFFLE(v, 4, 5, 6, 7, 0, 1, 2, 3);
+  v += RS_SHUFFLE(v, 2, 3, 0, 1, 6, 7, 4, 5);
+  v += RS_SHUFFLE(v, 1, 0, 3, 2, 5, 4, 7, 6);
+#elif RS_LANES == 4
+  v += RS_SHUFFLE(v, 2, 3, 0, 1);
+  v += RS_SHUFFLE(v, 1, 0, 3, 2);
+#else
+#error "RS_LANES must be 4 or 8"
+#endif
+  return v[0];
 }
-inline int lane_count(IV mask) {
-  int n = 0;
-  for (int j = 0; j < kLanes; ++j) n -= mask[j];
-  return n;
+#undef RS_SHUFFLE
+// Bit j set where lane j of the mask is set.
+inline unsigned lane_bits(IV mask) {
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && RS_LANES == 8
+  return static_cast<unsigned>(__builtin_ia32_movmskps256(reinterpret_cast<FV>(mask)));
+#elif defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && RS_LANES == 4
+  return static_cast<unsigned>(__builtin_ia32_movmskps(reinterpret_cast<FV>(mask)));
+#else
+  unsigned bits = 0;
+  for (int j = 0; j < kLanes; ++j) bits |= (mask[j] ? 1u : 0u) << j;
+  return bits;
+#endif
 }
+inline int lane_count(IV mask) { return __builtin_popcount(lane_bits(mask)); }
+
+// Asks for the Splat and features of a list entry a few entries ahead: a tile's list jumps
+// across the whole table, and without this each entry starts with a cache miss.
+constexpr int kPrefetch = 8;
+inline void prefetch_entry(const Binning& b, int64_t k, int channels) {
+#if defined(__GNUC__)
+  const int64_t id = b.ids[k];
+  __builtin_prefetch(&b.splats[id]);
+  __builtin_prefetch(reinterpret_cast<const char*>(&b.splats[id]) + 64);
+  __builtin_prefetch(b.features.data() + id * channels);
+#else
+  (void)b, (void)k, (void)channels;
+#endif
+}
+
+// The pixels [lo, hi] of a tile row are covered by vectors at logical starts lo, lo +
+// kLanes, ...; each vector is loaded at min(start, kTile - kLanes) so that it stays in the
+// row, and its lanes before the logical start are masked out (no pixel is done twice).
+inline int vector_at(int start) { return std::min(start, kTile - kLanes); }
 
 // exp(x) for x in [-20, 1] (Cephes' expf: range reduction and a degree-6 polynomial,
 // ~1 ulp) in plain vector arithmetic: every lane, pass and instruction set gives the same
@@ -87,14 +128,25 @@ inline FV raw_alpha(const Splat& p, FV dx, float dy, float row_term) {
 
 }  // namespace
 
-void composite_forward(const float* features, int channels, Binning& b, float* out,
-                       int threads) {
+// kD > 0: the number of feature channels fixed at compile time (loops unrolled); 0: any.
+template <int kD>
+void forward_channels(const float* features, int channels_in, Binning& b, float* out,
+                      int threads) {
+  const int channels = kD > 0 ? kD : channels_in;
   const int dp = channels + 1;
   const int64_t tiles = static_cast<int64_t>(b.tile_start.size()) - 1;
   const size_t pixels = static_cast<size_t>(b.cameras) * b.width * b.height;
   b.t_final.assign(pixels, 1.0f);
   b.n_used.assign(pixels, 0);
   const int workers = std::max(1, threads);
+  const int64_t visible = static_cast<int64_t>(b.rows.size());
+  b.features.resize(static_cast<size_t>(visible * channels));
+  const int64_t block = 4096;
+  parallel_for((visible + block - 1) / block, workers, [&](int64_t blk, int) {
+    for (int64_t i = blk * block; i < std::min(visible, (blk + 1) * block); ++i)
+      std::copy(features + int64_t{b.rows[i]} * channels, features + (int64_t{b.rows[i]} + 1) * channels,
+                b.features.begin() + i * channels);
+  });
   std::vector<std::vector<float>> scratch(workers);
   std::vector<std::vector<int32_t>> scratch_ints(workers);
   parallel_for(tiles, workers, [&](int64_t tile, int worker) {
@@ -109,26 +161,29 @@ void composite_forward(const float* features, int channels, Binning& b, float* o
     ints.assign(2 * kPixels, 0);
     int32_t* used = ints.data();        // (pixels) list entries up to the last contribution
     int32_t* alive = used + kPixels;    // (pixels) -1: still compositing, 0: done or outside
-    int chunk_alive[kChunks] = {};
+    int row_alive[kTile] = {};
     for (int r = 0; r < kTile; ++r) {
       for (int col = 0; col < kTile; ++col) {
         const bool in = r < box.h && col < box.w;
         trans[r * kTile + col] = 1.0f;
         alive[r * kTile + col] = in ? -1 : 0;
-        chunk_alive[(r * kTile + col) / kLanes] += in;
+        row_alive[r] += in;
       }
     }
     for (int col = 0; col < kTile; ++col) cx[col] = static_cast<float>(box.x0 + col) + 0.5f;
     int64_t n_alive = static_cast<int64_t>(box.w) * box.h;
     const int64_t start = b.tile_start[tile], end = b.tile_start[tile + 1];
+    for (int64_t k = start; k < std::min(end, start + kPrefetch); ++k) prefetch_entry(b, k, channels);
     for (int64_t k = start; k < end && n_alive > 0; ++k) {
-      const int64_t row = b.ids[k];
-      const Splat& p = b.splats[row];
-      const float* f = features + row * channels;
+      if (k + kPrefetch < end) prefetch_entry(b, k + kPrefetch, channels);
+      const int64_t id = b.ids[k];
+      const Splat& p = b.splats[id];
+      const float* f = b.features.data() + id * channels;
       const IV rank = splat(static_cast<int32_t>(k - start + 1));
       int r0, r1;
       if (!row_range(p, box.y0, box.h, r0, r1)) continue;
       for (int r = r0; r <= r1; ++r) {
+        if (!row_alive[r]) continue;
         const float yc = static_cast<float>(box.y0 + r) + 0.5f;
         int lo, hi;
         if (!col_span(p, yc, box.x0, box.x0 + box.w - 1, lo, hi)) continue;
@@ -136,12 +191,13 @@ void composite_forward(const float* features, int channels, Binning& b, float* o
         hi -= box.x0;
         const float dy = p.my - yc;
         const float row_term = -0.5f * p.c * dy * dy;
-        for (int cs = lo - lo % kLanes; cs <= hi; cs += kLanes) {
-          const int base = r * kTile + cs;
-          if (!chunk_alive[base / kLanes]) continue;
-          const FV raw = raw_alpha(p, p.mx - load(cx + cs), dy, row_term);
-          const IV col = lane + cs;
-          const IV in = (col >= lo) & (col <= hi) & load(alive + base) & (raw > kAlphaThreshold);
+        for (int cs = lo; cs <= hi; cs += kLanes) {
+          const int vs = vector_at(cs);
+          const int base = r * kTile + vs;
+          const FV raw = raw_alpha(p, p.mx - load(cx + vs), dy, row_term);
+          const IV col = lane + vs;
+          const IV in = (col >= cs) & (col <= hi) & load(alive + base) & (raw > kAlphaThreshold);
+          if (!lane_bits(in)) continue;
           const FV alpha = raw > kMaxAlpha ? splat(kMaxAlpha) : raw;
           const FV t = load(trans + base);
           const FV t_next = t * (1.0f - alpha);
@@ -157,9 +213,11 @@ void composite_forward(const float* features, int channels, Binning& b, float* o
           }
           float* a = acc + channels * kPixels + base;
           store(a, load(a) + w);
-          const int finished = lane_count(done);
-          chunk_alive[base / kLanes] -= finished;
-          n_alive -= finished;
+          if (lane_bits(done)) {
+            const int finished = lane_count(done);
+            row_alive[r] -= finished;
+            n_alive -= finished;
+          }
         }
       }
     }
@@ -175,70 +233,73 @@ void composite_forward(const float* features, int channels, Binning& b, float* o
   });
 }
 
-void composite_backward(const float* opacities, const float* features, int channels,
-                        const Binning& b, const float* grad_out, float* grad_means2d,
-                        float* grad_conics, float* grad_opacities, float* grad_features,
-                        int threads) {
+template <int kD>
+void backward_channels(const float* opacities, int channels_in, const Binning& b,
+                       const float* grad_out, float* grad_means2d, float* grad_conics,
+                       float* grad_opacities, float* grad_features, int threads) {
+  const int channels = kD > 0 ? kD : channels_in;
   const int dp = channels + 1;
   const int64_t tiles = static_cast<int64_t>(b.tile_start.size()) - 1;
-  const int64_t m = b.cameras * b.gaussians;
+  const int64_t v = static_cast<int64_t>(b.rows.size());
   const int64_t stride = 6 + channels;  // per Gaussian: means 2, conics 3, opacity 1, features
-  // Worker 0 adds into the outputs, the others into private arrays summed at the end (no
-  // atomics); fewer workers when those would take more than 1 GiB.
-  const int64_t per_worker = std::max<int64_t>(1, m * stride * int64_t{sizeof(float)});
+  // Each worker adds into its own array of (rank, stride) gradients (no atomics; one or two
+  // cache lines per Gaussian), summed into the outputs by row at the end; fewer workers
+  // when those would take more than 1 GiB.
+  const int64_t per_worker = std::max<int64_t>(1, v * stride * int64_t{sizeof(float)});
   const int workers = static_cast<int>(std::max<int64_t>(
-      1, std::min<int64_t>({int64_t{std::max(1, threads)}, tiles, 1 + (int64_t{1} << 30) / per_worker})));
+      1, std::min<int64_t>({int64_t{std::max(1, threads)}, tiles, (int64_t{1} << 30) / per_worker})));
   std::vector<std::vector<float>> private_grads(workers);
-  for (int w = 1; w < workers; ++w) private_grads[w].assign(static_cast<size_t>(m * stride), 0.0f);
-  struct Grads {
-    float *means, *conics, *opac, *feat;
-  };
-  auto grads_of = [&](int worker) {
-    if (worker == 0) return Grads{grad_means2d, grad_conics, grad_opacities, grad_features};
-    float* base = private_grads[worker].data();
-    return Grads{base, base + 2 * m, base + 5 * m, base + 6 * m};
-  };
+  private_grads[0].assign(static_cast<size_t>(v * stride), 0.0f);  // the others: when they start
   std::vector<std::vector<float>> scratch(workers);
   std::vector<std::vector<int32_t>> scratch_used(workers);
   const int ran = parallel_for(tiles, workers, [&](int64_t tile, int worker) {
     const TileBox box = tile_box(b, tile);
     const int64_t start = b.tile_start[tile];
     if (b.tile_start[tile + 1] == start) return;
+    if (private_grads[worker].empty()) private_grads[worker].assign(static_cast<size_t>(v * stride), 0.0f);
     const IV lane = lane_index();
     std::vector<float>& buf = scratch[worker];
-    buf.assign(static_cast<size_t>(kPixels) * (dp + 2) + kTile + static_cast<size_t>(kLanes) * channels, 0.0f);
+    buf.assign(static_cast<size_t>(kPixels) * (dp + 2) + kTile, 0.0f);
     float* trans = buf.data();          // (pixels) transmittance, walked back towards 1
     float* suffix = trans + kPixels;    // (pixels) sum over later Gaussians of w (g . f)
     float* g = suffix + kPixels;        // (D + 1, pixels) gradient of the output
     float* cx = g + kPixels * dp;       // (kTile) pixel-centre x of the tile's columns
-    float* lane_f = cx + kTile;         // (D, kLanes) one Gaussian's feature gradient per lane
     std::vector<int32_t>& used = scratch_used[worker];
     used.assign(kPixels, 0);
-    int32_t chunk_used[kChunks] = {};
+    int32_t row_used[kTile] = {};  // per row: the most list entries a pixel used
     for (int r = 0; r < box.h; ++r) {
       for (int col = 0; col < box.w; ++col) {
         const int px = r * kTile + col;
         const size_t at = (static_cast<size_t>(box.cam) * b.height + box.y0 + r) * b.width + box.x0 + col;
         trans[px] = b.t_final[at];
         used[px] = b.n_used[at];
-        chunk_used[px / kLanes] = std::max(chunk_used[px / kLanes], used[px]);
+        row_used[r] = std::max(row_used[r], used[px]);
         for (int d = 0; d < dp; ++d) g[d * kPixels + px] = grad_out[at * dp + d];
       }
     }
     for (int col = 0; col < kTile; ++col) cx[col] = static_cast<float>(box.x0 + col) + 0.5f;
-    const int32_t most = *std::max_element(chunk_used, chunk_used + kChunks);
-    const Grads out = grads_of(worker);
+    const int32_t most = *std::max_element(row_used, row_used + kTile);
+    float* grads = private_grads[worker].data();
+    for (int32_t kk = most - 1; kk >= std::max(0, most - kPrefetch); --kk) prefetch_entry(b, start + kk, channels);
     for (int32_t kk = most - 1; kk >= 0; --kk) {
-      const int64_t row = b.ids[start + kk];
-      const Splat& p = b.splats[row];
-      const float* f = features + row * channels;
+      if (kk >= kPrefetch) {
+        prefetch_entry(b, start + kk - kPrefetch, channels);
+#if defined(__GNUC__)
+        __builtin_prefetch(grads + b.ids[start + kk - kPrefetch] * stride, 1);
+#endif
+      }
+      const int64_t id = b.ids[start + kk];
+      const Splat& p = b.splats[id];
+      const float* f = b.features.data() + id * channels;
       int r0, r1;
       if (!row_range(p, box.y0, box.h, r0, r1)) continue;
       const IV rank = splat(kk);
       FV l_mx{}, l_my{}, l_ca{}, l_cb{}, l_cc{}, l_op{};  // per-lane sums of the gradients
-      std::fill(lane_f, lane_f + kLanes * channels, 0.0f);
+      FV l_f[kD > 0 ? kD : kMaxChannels];  // per-lane sums of the feature gradient
+      for (int d = 0; d < channels; ++d) l_f[d] = FV{};
       bool touched = false;
       for (int r = r0; r <= r1; ++r) {
+        if (row_used[r] <= kk) continue;
         const float yc = static_cast<float>(box.y0 + r) + 0.5f;
         int lo, hi;
         if (!col_span(p, yc, box.x0, box.x0 + box.w - 1, lo, hi)) continue;
@@ -246,26 +307,27 @@ void composite_backward(const float* opacities, const float* features, int chann
         hi -= box.x0;
         const float dy = p.my - yc;
         const float row_term = -0.5f * p.c * dy * dy;
-        for (int cs = lo - lo % kLanes; cs <= hi; cs += kLanes) {
-          const int base = r * kTile + cs;
-          if (chunk_used[base / kLanes] <= kk) continue;
+        for (int cs = lo; cs <= hi; cs += kLanes) {
+          const int vs = vector_at(cs);
+          const int base = r * kTile + vs;
+          const FV dx = p.mx - load(cx + vs);
+          const FV raw = raw_alpha(p, dx, dy, row_term);
+          const IV col = lane + vs;
+          const IV in = (col >= cs) & (col <= hi) & (rank < load(used.data() + base)) &
+                        (raw > kAlphaThreshold);
+          if (!lane_bits(in)) continue;
           touched = true;
           FV g_dot_f = load(g + channels * kPixels + base);  // the alpha channel: f = 1
           for (int d = 0; d < channels; ++d) g_dot_f += load(g + d * kPixels + base) * f[d];
-          const FV dx = p.mx - load(cx + cs);
-          const FV raw = raw_alpha(p, dx, dy, row_term);
-          const IV col = lane + cs;
-          const IV in = (col >= lo) & (col <= hi) & (rank < load(used.data() + base)) &
-                        (raw > kAlphaThreshold);
           const FV alpha = raw > kMaxAlpha ? splat(kMaxAlpha) : raw;
-          const FV one_minus = 1.0f - alpha;
+          const FV inv_one_minus = 1.0f / (1.0f - alpha);
           const FV t_after = load(trans + base);
-          const FV t = in ? t_after / one_minus : t_after;  // transmittance before this one
+          const FV t = in ? t_after * inv_one_minus : t_after;  // transmittance before this one
           store(trans + base, t);
           const FV weight = alpha * t;
           const FV later = load(suffix + base);
           // dL/dalpha = T_before (g . f) - (sum over later Gaussians of w (g . f)) / (1 - alpha)
-          const FV g_alpha = t * g_dot_f - later / one_minus;
+          const FV g_alpha = t * g_dot_f - later * inv_one_minus;
           store(suffix + base, in ? later + weight * g_dot_f : later);
           const FV w = in ? weight : FV{};
           // alpha = o exp(-sigma) where the clamp is not active: dL/d(-sigma) = dL/dalpha alpha
@@ -276,36 +338,61 @@ void composite_backward(const float* opacities, const float* features, int chann
           l_ca -= 0.5f * g_ns * dx * dx;
           l_cb -= g_ns * dx * dy;
           l_cc -= 0.5f * g_ns * dy * dy;
-          for (int d = 0; d < channels; ++d) {
-            float* lf = lane_f + d * kLanes;
-            store(lf, load(lf) + w * load(g + d * kPixels + base));
-          }
+          for (int d = 0; d < channels; ++d) l_f[d] += w * load(g + d * kPixels + base);
         }
       }
       if (!touched) continue;
-      out.means[2 * row] += lane_sum(l_mx);
-      out.means[2 * row + 1] += lane_sum(l_my);
-      out.conics[3 * row] += lane_sum(l_ca);
-      out.conics[3 * row + 1] += lane_sum(l_cb);
-      out.conics[3 * row + 2] += lane_sum(l_cc);
-      out.opac[row] += lane_sum(l_op);
-      for (int d = 0; d < channels; ++d)
-        out.feat[row * channels + d] += lane_sum(load(lane_f + d * kLanes));
+      float* gi = grads + id * stride;  // means 2, conics 3, opacity, features
+      gi[0] += lane_sum(l_mx);
+      gi[1] += lane_sum(l_my);
+      gi[2] += lane_sum(l_ca);
+      gi[3] += lane_sum(l_cb);
+      gi[4] += lane_sum(l_cc);
+      gi[5] += lane_sum(l_op);
+      for (int d = 0; d < channels; ++d) gi[6 + d] += lane_sum(l_f[d]);
     }
   });
-  const int64_t block = 1 << 14;
-  parallel_for((m + block - 1) / block, workers, [&](int64_t blk, int) {
-    const int64_t lo = blk * block, hi = std::min(m, lo + block);
-    for (int w = 1; w < ran; ++w) {
-      const Grads o = grads_of(w);
-      for (int64_t i = 2 * lo; i < 2 * hi; ++i) grad_means2d[i] += o.means[i];
-      for (int64_t i = 3 * lo; i < 3 * hi; ++i) grad_conics[i] += o.conics[i];
-      for (int64_t i = lo; i < hi; ++i) grad_opacities[i] += o.opac[i];
-      for (int64_t i = lo * channels; i < hi * channels; ++i) grad_features[i] += o.feat[i];
+  const int64_t block = 4096;
+  parallel_for((v + block - 1) / block, workers, [&](int64_t blk, int) {
+    for (int64_t i = blk * block; i < std::min(v, (blk + 1) * block); ++i) {
+      const int64_t row = b.rows[i];
+      for (int w = 0; w < ran; ++w) {
+        if (private_grads[w].empty()) continue;
+        const float* gi = private_grads[w].data() + i * stride;
+        for (int j = 0; j < 2; ++j) grad_means2d[2 * row + j] += gi[j];
+        for (int j = 0; j < 3; ++j) grad_conics[3 * row + j] += gi[2 + j];
+        grad_opacities[row] += gi[5];
+        for (int d = 0; d < channels; ++d) grad_features[row * channels + d] += gi[6 + d];
+      }
+      // dL/do = dL/d(-sigma) / o (alpha = o exp(-sigma))
+      grad_opacities[row] /= std::max(opacities[row], 1e-30f);
     }
-    // dL/do = dL/d(-sigma) / o (alpha = o exp(-sigma))
-    for (int64_t i = lo; i < hi; ++i) grad_opacities[i] /= std::max(opacities[i], 1e-30f);
   });
+}
+
+void composite_forward(const float* features, int channels, Binning& b, float* out,
+                       int threads) {
+  switch (channels) {
+    case 3: return forward_channels<3>(features, channels, b, out, threads);
+    case 4: return forward_channels<4>(features, channels, b, out, threads);
+    default: return forward_channels<0>(features, channels, b, out, threads);
+  }
+}
+
+void composite_backward(const float* opacities, int channels, const Binning& b,
+                        const float* grad_out, float* grad_means2d, float* grad_conics,
+                        float* grad_opacities, float* grad_features, int threads) {
+  switch (channels) {
+    case 3:
+      return backward_channels<3>(opacities, channels, b, grad_out, grad_means2d, grad_conics,
+                                  grad_opacities, grad_features, threads);
+    case 4:
+      return backward_channels<4>(opacities, channels, b, grad_out, grad_means2d, grad_conics,
+                                  grad_opacities, grad_features, threads);
+    default:
+      return backward_channels<0>(opacities, channels, b, grad_out, grad_means2d, grad_conics,
+                                  grad_opacities, grad_features, threads);
+  }
 }
 
 }  // namespace RS_ISA

@@ -66,6 +66,8 @@ inline Splat make_splat(const Splats& s, int64_t row) {
   p.c = s.conics[3 * row + 2];
   const float o = s.opacities[row];
   p.log_o = std::log(o);
+  p.rx = s.radii[2 * row];
+  p.ry = s.radii[2 * row + 1];
   const double a = p.a, b = p.b, c = p.c;
   const double det = a * c - b * b;
   const double lambda_min = 0.5 * (a + c) - std::sqrt(0.25 * (a - c) * (a - c) + b * b);
@@ -73,7 +75,7 @@ inline Splat make_splat(const Splats& s, int64_t row) {
   p.bounded = a > 0 && c > 0 && det > 0 && lambda_min > 0 && std::isfinite(a + b + c) &&
               std::isfinite(limit) && std::isfinite(static_cast<double>(p.mx) + p.my);
   if (!p.bounded) {
-    p.slope = p.k1 = p.k2 = 0.0;
+    p.slope = p.k1 = p.k2 = p.turn = 0.0;
     p.y_ext = std::numeric_limits<double>::infinity();
     return p;
   }
@@ -85,6 +87,8 @@ inline Splat make_splat(const Splats& s, int64_t row) {
   p.k1 = 2.0 * bound / a;
   p.k2 = det / (a * a);
   p.y_ext = std::sqrt(2.0 * bound * a / det);
+  // The leftmost point has d sigma / d dy = 0: dy = -(b / c) dx at dx = sqrt(2 bound c / det).
+  p.turn = p.slope / (p.k2 + p.slope * p.slope) * std::sqrt(p.k1 * (1.0 + p.slope * p.slope / p.k2));
   return p;
 }
 

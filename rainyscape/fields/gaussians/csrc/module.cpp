@@ -60,10 +60,10 @@ bool run_released(Fn&& fn) {
 }
 
 PyObject* py_bin(PyObject*, PyObject* args) {
-  unsigned long long means2d, conics, opacities, radii, order;
+  unsigned long long means2d, conics, opacities, radii, depths;
   long long cameras, gaussians;
   int width, height, threads;
-  if (!PyArg_ParseTuple(args, "KKKKKLLiii", &means2d, &conics, &opacities, &radii, &order,
+  if (!PyArg_ParseTuple(args, "KKKKKLLiii", &means2d, &conics, &opacities, &radii, &depths,
                         &cameras, &gaussians, &width, &height, &threads))
     return nullptr;
   if (cameras < 0 || gaussians < 0 || width < 0 || height < 0) {
@@ -81,7 +81,7 @@ PyObject* py_bin(PyObject*, PyObject* args) {
   s.gaussians = gaussians;
   s.width = width;
   s.height = height;
-  if (!run_released([&] { rs::bin_splats(s, ptr<const int64_t>(order), threads, *b); })) {
+  if (!run_released([&] { rs::bin_splats(s, ptr<const float>(depths), threads, *b); })) {
     delete b;
     return nullptr;
   }
@@ -106,6 +106,10 @@ PyObject* py_forward(PyObject*, PyObject* args) {
     return nullptr;
   rs::Binning* b = binning_of(capsule);
   if (!b) return nullptr;
+  if (channels < 0 || channels > rs::kMaxChannels) {
+    PyErr_Format(PyExc_ValueError, "the kernel composites 0 to %d feature channels", rs::kMaxChannels);
+    return nullptr;
+  }
   if (!run_released([&] {
         rs::composite_forward(ptr<const float>(features), channels, *b, ptr<float>(out), threads);
       }))
@@ -115,22 +119,81 @@ PyObject* py_forward(PyObject*, PyObject* args) {
 
 PyObject* py_backward(PyObject*, PyObject* args) {
   PyObject* capsule;
-  unsigned long long opacities, features, grad_out, g_means2d, g_conics, g_opacities, g_features;
+  unsigned long long opacities, grad_out, g_means2d, g_conics, g_opacities, g_features;
   int channels, threads;
-  if (!PyArg_ParseTuple(args, "OKKiKKKKKi", &capsule, &opacities, &features, &channels,
-                        &grad_out, &g_means2d, &g_conics, &g_opacities, &g_features, &threads))
+  if (!PyArg_ParseTuple(args, "OKiKKKKKi", &capsule, &opacities, &channels, &grad_out,
+                        &g_means2d, &g_conics, &g_opacities, &g_features, &threads))
     return nullptr;
   rs::Binning* b = binning_of(capsule);
   if (!b) return nullptr;
-  if (b->t_final.size() != static_cast<size_t>(b->cameras) * b->width * b->height) {
+  if (b->t_final.size() != static_cast<size_t>(b->cameras) * b->width * b->height ||
+      b->features.size() != b->rows.size() * static_cast<size_t>(channels)) {
     PyErr_SetString(PyExc_RuntimeError, "backward before forward on this binning");
     return nullptr;
   }
   if (!run_released([&] {
-        rs::composite_backward(ptr<const float>(opacities), ptr<const float>(features), channels,
-                               *b, ptr<const float>(grad_out), ptr<float>(g_means2d),
+        rs::composite_backward(ptr<const float>(opacities), channels, *b,
+                               ptr<const float>(grad_out), ptr<float>(g_means2d),
                                ptr<float>(g_conics), ptr<float>(g_opacities),
                                ptr<float>(g_features), threads);
+      }))
+    return nullptr;
+  Py_RETURN_NONE;
+}
+
+// The views tuple: (viewmats, Ks, offsets, C, width, height, window_width, window_height,
+// near_plane, far_plane, eps2d), pointers as ints.
+#define VIEWS_FORMAT "(KKKLiiiifff)"
+#define VIEWS_ARGS(v) &viewmats, &intrinsics, &offsets, &cameras, &v.width, &v.height, \
+    &v.window_width, &v.window_height, &v.near_plane, &v.far_plane, &v.eps2d
+
+void set_views(rs::Views& v, unsigned long long viewmats, unsigned long long intrinsics,
+               unsigned long long offsets, long long cameras) {
+  v.viewmats = ptr<const float>(viewmats);
+  v.intrinsics = ptr<const float>(intrinsics);
+  v.offsets = ptr<const float>(offsets);
+  v.cameras = cameras;
+}
+
+PyObject* py_project(PyObject*, PyObject* args) {
+  unsigned long long means, quats, scales, opacities, means2d, conics, depths, radii;
+  unsigned long long viewmats, intrinsics, offsets;
+  long long n, cameras;
+  int threads;
+  rs::Views v;
+  if (!PyArg_ParseTuple(args, "KKKKL" VIEWS_FORMAT "KKKKi", &means, &quats, &scales,
+                        &opacities, &n, VIEWS_ARGS(v), &means2d, &conics, &depths, &radii,
+                        &threads))
+    return nullptr;
+  set_views(v, viewmats, intrinsics, offsets, cameras);
+  if (!run_released([&] {
+        rs::project_forward(ptr<const float>(means), ptr<const float>(quats),
+                            ptr<const float>(scales), ptr<const float>(opacities), n, v,
+                            ptr<float>(means2d), ptr<float>(conics), ptr<float>(depths),
+                            ptr<int32_t>(radii), threads);
+      }))
+    return nullptr;
+  Py_RETURN_NONE;
+}
+
+PyObject* py_project_backward(PyObject*, PyObject* args) {
+  unsigned long long means, quats, scales, g_means2d, g_conics, g_depths, g_means, g_quats,
+      g_scales;
+  unsigned long long viewmats, intrinsics, offsets;
+  long long n, cameras;
+  int threads;
+  rs::Views v;
+  if (!PyArg_ParseTuple(args, "KKKL" VIEWS_FORMAT "KKKKKKi", &means, &quats, &scales, &n,
+                        VIEWS_ARGS(v), &g_means2d, &g_conics, &g_depths, &g_means, &g_quats,
+                        &g_scales, &threads))
+    return nullptr;
+  set_views(v, viewmats, intrinsics, offsets, cameras);
+  if (!run_released([&] {
+        rs::project_backward(ptr<const float>(means), ptr<const float>(quats),
+                             ptr<const float>(scales), n, v, ptr<const float>(g_means2d),
+                             ptr<const float>(g_conics), ptr<const float>(g_depths),
+                             ptr<float>(g_means), ptr<float>(g_quats), ptr<float>(g_scales),
+                             threads);
       }))
     return nullptr;
   Py_RETURN_NONE;
@@ -139,15 +202,21 @@ PyObject* py_backward(PyObject*, PyObject* args) {
 PyObject* py_simd(PyObject*, PyObject*) { return PyUnicode_FromString(rs::simd_name()); }
 
 PyMethodDef kMethods[] = {
+    {"project", py_project, METH_VARARGS,
+     "project(means, quats, scales, opacities, N, views, means2d, conics, depths, radii,"
+     " threads): EWA projection into the given outputs"},
+    {"project_backward", py_project_backward, METH_VARARGS,
+     "project_backward(means, quats, scales, N, views, grad_means2d, grad_conics,"
+     " grad_depths, grad_means, grad_quats, grad_scales, threads): adds into the gradients"},
     {"bin", py_bin, METH_VARARGS,
-     "bin(means2d, conics, opacities, radii, order, C, N, width, height, threads)"
+     "bin(means2d, conics, opacities, radii, depths, C, N, width, height, threads)"
      " -> binning: depth-sorted Gaussian lists of every 16 x 16 tile"},
     {"pairs", py_pairs, METH_VARARGS, "pairs(binning) -> number of Gaussian-tile pairs"},
     {"simd", py_simd, METH_NOARGS, "simd() -> the build of the compositing that runs here"},
     {"forward", py_forward, METH_VARARGS,
      "forward(binning, features, D, out, threads): out (C, H, W, D + 1)"},
     {"backward", py_backward, METH_VARARGS,
-     "backward(binning, opacities, features, D, grad_out, grad_means2d, grad_conics,"
+     "backward(binning, opacities, D, grad_out, grad_means2d, grad_conics,"
      " grad_opacities, grad_features, threads): adds into the (zero) gradients"},
     {nullptr, nullptr, 0, nullptr}};
 
