@@ -7,6 +7,12 @@ sets: one 240 x 180 view (and a 240 x 135 one), 20k / 50k / 100k Gaussians.
     OMP_NUM_THREADS=1 python benchmarks/rasterizer.py --profile sfm --sizes 20000
         (torch.profiler table of one torch-path step on that scene)
 
+Against an earlier version of the torch rasteriser (a copy of its package, e.g.
+``git archive 096cb98 rainyscape | tar -x -C /tmp/base``): run it there with
+``--package /tmp/base --backends torch --json base.json``, then here with
+``--baseline base.json``: an extra column gives that run's torch time / this run's cpp
+time (two processes: compare under the same machine load).
+
 One timed step is ``rasterize()`` forward (cull, projection, compositing of rgb + depth)
 and backward of loss = sum(rgb * fixed random weights), with gradients for means, quats,
 scales, opacities and colours: what a training step pays for rendering a whole view.
@@ -36,11 +42,9 @@ import math
 import statistics
 import time
 
-import torch
+import sys
 
-from rainyscape.fields.gaussians.projection import candidate_gaussians, project_gaussians
-from rainyscape.fields.gaussians.rasterize import rasterize
-from rainyscape.fields.gaussians.rasterize_torch import bin_gaussians
+import torch
 
 FOCAL_PER_WIDTH = 200.0 / 240.0
 SPARSE_POINTS = 2000
@@ -113,6 +117,9 @@ def make_scene(kind: str, n: int, width: int, height: int, seed: int = 0):
 
 def pairs_count(params, viewmats, ks, width: int, height: int) -> int:
     """Gaussian-tile intersections of the torch path's 16 x 16 binning."""
+    from rainyscape.fields.gaussians.projection import candidate_gaussians, project_gaussians
+    from rainyscape.fields.gaussians.rasterize_torch import bin_gaussians
+
     with torch.no_grad():
         means, quats, scales, opac, _ = params
         ids = candidate_gaussians(means, scales, opac, viewmats, ks, width, height,
@@ -123,9 +130,12 @@ def pairs_count(params, viewmats, ks, width: int, height: int) -> int:
 
 
 def cpp_pairs(params, viewmats, ks, width: int, height: int) -> int | None:
+    from rainyscape.fields.gaussians.projection import project_gaussians
     try:
-        from rainyscape.fields.gaussians.rasterize_cpp import binning_pairs
-    except ImportError:
+        from rainyscape.fields.gaussians.rasterize_cpp import binning_pairs, cpp_available
+    except ImportError:  # an earlier version of the package
+        return None
+    if not cpp_available():
         return None
     with torch.no_grad():
         means, quats, scales, opac, _ = params
@@ -134,6 +144,8 @@ def cpp_pairs(params, viewmats, ks, width: int, height: int) -> int | None:
 
 
 def step(params, weights, viewmats, ks, width: int, height: int, backend: str) -> None:
+    from rainyscape.fields.gaussians.rasterize import rasterize
+
     leaves = [p.detach().requires_grad_(True) for p in params]
     out = rasterize(*leaves, viewmats, ks, width, height, backend=backend)
     (out.rgb * weights).sum().backward()
@@ -173,7 +185,19 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--profile", default="", help="profile the torch path on this scene")
     parser.add_argument("--json", default="", help="also write the rows to this file")
+    parser.add_argument("--package", default="",
+                        help="import rainyscape from this folder (an earlier version)")
+    parser.add_argument("--baseline", default="",
+                        help="JSON of an earlier run: add its torch time / this cpp time")
     args = parser.parse_args()
+    if args.package:  # ahead of the editable install's import hook
+        sys.meta_path = [f for f in sys.meta_path if "editable" not in repr(f).lower()]
+        sys.path.insert(0, args.package)
+    baseline = {}
+    if args.baseline:
+        with open(args.baseline) as fh:
+            baseline = {(r["view"], r["scene"], r["n"]): r["torch"]["cpu_ms"]
+                        for r in json.load(fh)["rows"]}
     torch.set_num_threads(args.threads)
     sizes = [int(s) for s in args.sizes.split(",")]
     views = [tuple(int(v) for v in view.split("x")) for view in args.views.split(",")]
@@ -185,7 +209,8 @@ def main() -> None:
     print(f"threads {args.threads}, repeats {args.repeats}; times: median wall / CPU ms")
     header = "view     scene    N       pairs16  pairs_cpp " + " ".join(
         f"{b + ' wall':>11} {b + ' cpu':>10}" for b in backends)
-    print(header + ("  torch/cpp" if {"torch", "cpp"} <= set(backends) else ""))
+    print(header + ("  torch/cpp" if {"torch", "cpp"} <= set(backends) else "")
+          + ("  baseline/cpp" if baseline and "cpp" in backends else ""))
     for width, height in views:
         viewmats, ks = camera(width, height)
         weights = torch.rand(1, height, width, 3, generator=torch.Generator().manual_seed(1))
@@ -207,6 +232,11 @@ def main() -> None:
                 if "torch" in row and "cpp" in row:
                     row["torch_over_cpp_cpu"] = row["torch"]["cpu_ms"] / row["cpp"]["cpu_ms"]
                     line += f"  {row['torch_over_cpp_cpu']:8.1f}x"
+                key = (row["view"], kind, n)
+                if "cpp" in row and key in baseline:
+                    row["baseline_torch_cpu_ms"] = baseline[key]
+                    row["baseline_over_cpp_cpu"] = baseline[key] / row["cpp"]["cpu_ms"]
+                    line += f"  {row['baseline_over_cpp_cpu']:10.1f}x"
                 print(line, flush=True)
                 rows.append(row)
     for b in backends:  # cost of the large-Gaussian sets relative to the trained-like ones
