@@ -9,10 +9,13 @@ from pathlib import Path
 
 from rainyscape.errors import ConfigError
 
-# The field's ceiling: a method trained on a scene's clean views at the same budget (a
-# simulated scene, or a real capture with simulated rain: both keep them in CLEAN_IMAGES).
+# The field's ceiling: a method trained on a scene's clean views at the same budget. A
+# simulated scene, or a real capture with simulated rain, keeps them in CLEAN_IMAGES; a scene
+# folder may name its own with dataparser.clean=FOLDER.
 CLEAN_IMAGES = "images_wo_rain"
-CLEAN_FORMATS = ("maya-csv", "transforms-json")  # parsers that train on them with images= / clean=
+# parsers that train on a folder of clean views with images= and score against it with clean=
+CLEAN_FORMATS = ("maya-csv", "transforms-json", "llff", "colmap")
+SIMULATED_FORMAT = "maya-csv"  # what the simulator writes: the format of a scene not simulated yet
 CEILING = " on clean views"
 
 # The paper's loss ablation (Table II): variant label -> overrides of the ablated method.
@@ -54,33 +57,73 @@ class Cell:
         return self.key.replace("/", "__").replace(" ", "_")
 
 
-def clean_views_format(data: str) -> str | None:
-    """The dataparser that trains on a scene folder's clean views (a simulated scene, or a real
-    capture given simulated rain), None when it has none. A folder not simulated yet ("")
-    will be a simulated one."""
+def given(overrides: list[str], key: str) -> str | None:
+    """The value the last ``key=value`` of ``overrides`` gives ``key`` (None: not given)."""
+    found = None
+    for o in overrides:
+        k, eq, v = o.partition("=")
+        if eq and k == key:
+            found = v
+    return found
+
+
+def named_parser(overrides: list[str]) -> str | None:
+    """The dataparser ``overrides`` name (None: none, or ``auto``, which resolves per scene)."""
+    name = given(overrides, "dataparser")
+    return None if name in (None, "", "auto") else name
+
+
+def scene_format(data: str) -> str | None:
+    """The dataparser ``dataparser=auto`` picks for a cell's scene folder: the simulator's
+    format for a scene not simulated yet (``""``, or a folder not there yet); None when the
+    folder's format cannot be told (the cell's own parser then says why)."""
     from rainyscape.dataparsers.auto import detect_format
     from rainyscape.errors import DataError
 
     folder = Path(data)
     if not data or not folder.is_dir():
-        return "maya-csv"
-    if not (folder / CLEAN_IMAGES).is_dir():
-        return None
+        return SIMULATED_FORMAT
     try:
-        fmt = detect_format(folder)
+        return detect_format(folder)
     except DataError:
         return None
-    return fmt if fmt in CLEAN_FORMATS else None
 
 
-def has_clean_views(data: str) -> bool:
-    return clean_views_format(data) is not None
+def parser_overrides(data: str, overrides: list[str]) -> list[str]:
+    """``dataparser=FORMAT`` for a cell whose overrides set dataparser options without naming
+    a parser: auto resolves per scene, and the scene's parser then takes its own options (as
+    rs-train does when it sees the folder). Nothing otherwise, so a cell's config (and its
+    fingerprint) stays what it was."""
+    if named_parser(overrides) or not any(o.partition("=")[0].startswith("dataparser.") for o in overrides):
+        return []
+    fmt = scene_format(data)
+    return [f"dataparser={fmt}"] if fmt else []
 
 
-def clean_overrides(data: str) -> list[str]:
+def clean_views(data: str, overrides: list[str] = ()) -> tuple[str, str] | None:
+    """(dataparser, folder of clean views) that train a cell on its scene's clean views, None
+    when the scene has none: the parser the overrides name, else the scene's format; the
+    folder ``dataparser.clean=`` names, else CLEAN_IMAGES. A scene not simulated yet will be
+    a simulated one, with them."""
+    fmt = named_parser(overrides) or scene_format(data)
+    clean = given(overrides, "dataparser.clean")
+    if clean == "":  # clean= (none): nothing to train on, nothing to score against
+        return None
+    clean = CLEAN_IMAGES if clean in (None, "auto") else clean
+    folder = Path(data)
+    if fmt not in CLEAN_FORMATS or (data and folder.is_dir() and not (folder / clean).is_dir()):
+        return None
+    return fmt, clean
+
+
+def has_clean_views(data: str, overrides: list[str] = ()) -> bool:
+    return clean_views(data, overrides) is not None
+
+
+def clean_overrides(data: str, overrides: list[str] = ()) -> list[str]:
     """The overrides that train a cell on the scene's clean views (and score against them)."""
-    return [f"dataparser={clean_views_format(data)}", f"dataparser.images={CLEAN_IMAGES}",
-            f"dataparser.clean={CLEAN_IMAGES}"]
+    fmt, clean = clean_views(data, overrides)
+    return [f"dataparser={fmt}", f"dataparser.images={clean}", f"dataparser.clean={clean}"]
 
 
 def build_cells(methods: list[str], scenes: list[tuple[str, str]], overrides: list[str],
@@ -89,18 +132,24 @@ def build_cells(methods: list[str], scenes: list[tuple[str, str]], overrides: li
     """The cells of ``methods`` x ``scenes`` ((label, folder) pairs), first the ``ceiling``
     methods trained on each scene's clean views (where it has them), and with ``ablation``,
     the loss ablation. Each cell's overrides: ``method_overrides[method]`` (e.g. a scene set's
-    step count for that method's field), then ``overrides`` (the command's: they win)."""
+    step count for that method's field), then ``overrides`` (the command's: they win); before
+    them, the scene's own parser when they set dataparser options (:func:`parser_overrides`),
+    and after them, for a ceiling, what trains it on the clean views (:func:`clean_overrides`)."""
     per = method_overrides or {}
-    cells = [Cell(f"{label}/{m}{CEILING}", label, data, m, per.get(m, []) + list(overrides) + clean_overrides(data),
+
+    def given_to(m: str) -> list[str]:  # the overrides the command gives method m's cells
+        return per.get(m, []) + list(overrides)
+
+    cells = [Cell(f"{label}/{m}{CEILING}", label, data, m, given_to(m) + clean_overrides(data, given_to(m)),
                   f"{m}{CEILING}", clean=True)
-             for label, data in scenes for m in ceiling if has_clean_views(data)]
-    cells += [Cell(f"{label}/{m}", label, data, m, per.get(m, []) + list(overrides), m)
+             for label, data in scenes for m in ceiling if has_clean_views(data, given_to(m))]
+    cells += [Cell(f"{label}/{m}", label, data, m, parser_overrides(data, given_to(m)) + given_to(m), m)
               for label, data in scenes for m in methods]
     if ablation is not None:
         label, data = ablation
+        variants = {variant: given_to(ablation_method) + extra for variant, extra in ABLATIONS.items()}
         cells += [Cell(f"ablation/{label}/{variant}", label, data, ablation_method,
-                       per.get(ablation_method, []) + list(overrides) + extra, variant)
-                  for variant, extra in ABLATIONS.items()]
+                       parser_overrides(data, o) + o, variant) for variant, o in variants.items()]
     return cells
 
 

@@ -8,6 +8,8 @@ Scenes: a scene set (cpu: five presets at 128 px, the six-method table in an hou
 with jobs=2 threads=1; paper: 512 px, 5 x 10 views, the paper's step counts, for a GPU), or
 simulator presets (simulated once into OUT/scenes) and scene folders; demo alone is the
 embedded demo. A set fixes size, views and steps per field; scene_width= ... iters= override.
+A scene folder is read by its own format's parser (dataparser=NAME names one for every folder)
+and takes that parser's options: dataparser.clean=FOLDER scores against its clean photos.
 Before anything trains, every cell's budget (steps, mean pixels per step) is computed and
 methods training the same field must match (exit 2 naming them, unless allow_unequal=true).
 Dotted keys (trainer.eval_every=0, ...) go to every cell; METHOD:KEY.PATH=value to that
