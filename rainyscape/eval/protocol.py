@@ -29,6 +29,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from rainyscape.components import MaskFusion
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.eval.images import save_strip
 from rainyscape.eval.perceptual import LpipsMetric, load_lpips
@@ -38,7 +39,6 @@ from rainyscape.eval.summary import summarize
 from rainyscape.eval.views import ViewImages, progress, view_images
 from rainyscape.formats.atomic import write_text_atomic
 from rainyscape.imaging.metrics import masked_psnr, psnr, ssim
-from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion, fuse, rain_mask
 
 STRIP_VIEWS = 3  # training views whose comparison strips evaluation saves for the report
 CONTROL_SEED = 7919  # the random-mask control of view i uses seed CONTROL_SEED + i
@@ -83,43 +83,17 @@ def region_metrics(image: Tensor, clean: Tensor, true_rain: Tensor, wet: Tensor,
     return {**region_psnr(image, clean, wet), **rain_shares(image, clean, true_rain, wet, rain)}
 
 
-def fusion_mask(post, rendered: Tensor, rain: Tensor, rainy: Tensor) -> Tensor | None:
-    """The (1, H, W) boolean mask under which fusion post-process ``post`` keeps rendered
-    pixels: its own ``post.mask(rendered, rain, rainy)`` when it has one, for rain-mask fusion
-    the mask rebuilt from its public pieces (``rain_mask`` with its threshold and dilation);
-    None for a post-process that is not a mask fusion (it gets no control)."""
-    if callable(getattr(post, "mask", None)):
-        return post.mask(rendered, rain, rainy)
-    if isinstance(post, RainMaskFusion):
-        return rain_mask(rain, post.config.threshold, post.config.dilation)
-    return None
-
-
-def random_mask_like(mask: Tensor, seed: int) -> Tensor:
-    """A boolean mask of ``mask``'s shape with exactly as many pixels set, placed uniformly at
-    random (``torch.randperm`` with ``seed``: the same seed gives the same mask anywhere)."""
-    n, k = mask.numel(), int(mask.sum())
-    flat = torch.zeros(n, dtype=torch.bool)
-    flat[torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:k]] = True
-    return flat.view(mask.shape).to(mask.device)
-
-
 def fusion_controls(pipeline: Pipeline, v: ViewImages) -> dict[str, tuple[float, Tensor]]:
-    """For each mask-fusion post-process of a training view: (coverage of its mask, the same
-    fusion with a random mask of that coverage). A post-process whose output is not
-    ``fuse(rendered, rainy, mask)`` of the mask found for it gets none (no control is better
-    than a wrong one)."""
+    """For each mask-fusion post-process of a training view (:class:`MaskFusion`): (coverage
+    of its mask, the same fusion under a random mask of that coverage, placed with the view's
+    seed). Other post-processes get none."""
     out: dict[str, tuple[float, Tensor]] = {}
     if v.rain is None:
         return out
     for key, post in pipeline.postprocess.items():
-        if key not in v.post:
-            continue
-        mask = fusion_mask(post, v.rendered, v.rain, v.rainy)
-        if mask is None or not torch.allclose(fuse(v.rendered, v.rainy, mask).clamp(0, 1), v.post[key], atol=1e-6):
-            continue
-        control = fuse(v.rendered, v.rainy, random_mask_like(mask, CONTROL_SEED + v.index)).clamp(0, 1)
-        out[key] = (float(mask.float().mean()), control)
+        if key in v.post and isinstance(post, MaskFusion):
+            control = post.control(v.rendered, v.rain, v.rainy, CONTROL_SEED + v.index)
+            out[key] = (control.coverage, control.control)
     return out
 
 

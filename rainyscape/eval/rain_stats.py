@@ -8,19 +8,19 @@ import math
 
 from torch import Tensor
 
+from rainyscape.components import MeasuresRainAngles
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.eval.views import ViewImages
 from rainyscape.imaging.angles import estimate_rain_angles, matched_angle_error_deg, streak_angle
 
 
 def angle_options(pipeline: Pipeline) -> dict:
-    """Histogram settings of the run's AGR term (``k``: its rain directions per image), so
-    evaluation measures angles as training did."""
-    for cfg, _ in pipeline.losses.values():
-        if cfg.name == "agr":
-            o = cfg.options
-            return {"bins": o.bins, "threshold": o.threshold, "smoothing": o.smoothing,
-                    "kernel": o.kernel, "k": int(o.top_k)}
+    """The angle settings of the run's term that measures rain angles (the AGR loss: its
+    histogram and ``k``, its rain directions per image), so evaluation measures angles as
+    training did; {} (the estimator's defaults) when no term measures them."""
+    for _, term in pipeline.losses.values():
+        if isinstance(term, MeasuresRainAngles):
+            return term.angle_settings()
     return {}
 
 
