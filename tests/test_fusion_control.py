@@ -75,7 +75,7 @@ def test_true_rain_beats_its_random_control_clearly():
     assert fused > control + 3  # ... comes from finding the rain: a random mask gets far less
     assert s[f"train_{KEY}_ssim"] > s[f"train_{KEY}_random_ssim"]
     per_view = [r for r in evaluate_pipeline(_pipeline("true"))["per_view"] if r["split"] == "train"]
-    assert all(f"{KEY}_random_psnr" in r for r in per_view)
+    assert all(f"train_{KEY}_random_psnr" in r for r in per_view)
 
 
 def test_random_rain_scores_like_its_control():

@@ -11,9 +11,11 @@ import io
 import json
 from pathlib import Path
 
+from rainyscape.eval.metric_keys import (ANGLE_ERROR, CORRELATION, IMAGE_MEASURES, LPIPS, RAIN_ANGLE, RAIN_KEPT,
+                                         RAIN_RECOVERED, RESIDUAL_ANGLE, SPLITS, TRUE_ANGLE, Metric, post,
+                                         quick_key, rain_stat, rainy_input, render)
 from rainyscape.formats.atomic import write_text_atomic
 
-METRICS = ("psnr", "ssim", "lpips")
 MAX_STRIPS = 6  # comparison strips shown (rs-render writes one per view under renders/strips)
 CSS = """
 body{font-family:system-ui,sans-serif;margin:24px auto;max-width:1200px;color:#222;padding:0 16px}
@@ -97,11 +99,12 @@ def psnr_plot(train: list[dict], evals: list[dict]) -> str | None:
     if not series and not train:
         return None
     fig, ax = _figure()
-    names = {"train_psnr_clean": "training views vs clean", "train_psnr_rainy": "training views vs rainy",
-             "heldout_psnr_clean": "held-out views vs clean", "heldout_psnr_rainy": "held-out views vs rainy"}
+    views = {"train": "training views", "heldout": "held-out views"}
+    names = {quick_key(split, against): (f"{views[split]} vs {against}", "-" if against == "clean" else "--")
+             for split in SPLITS for against in ("clean", "rainy")}
     for key, pts in sorted(series.items()):
-        style = "-" if key.endswith("clean") else "--"
-        ax.plot(*zip(*pts), style, marker="o", ms=3, label=names.get(key, key))
+        label, style = names.get(key, (key, "-"))
+        ax.plot(*zip(*pts), style, marker="o", ms=3, label=label)
     batch = [(r["step"], r["psnr_input"]) for r in train if "psnr_input" in r]
     if batch:
         ax.plot(*zip(*batch), color="grey", alpha=0.5, lw=0.8, label="batch: B (+R) vs rainy")
@@ -156,27 +159,27 @@ def _fmt(value, digits: int = 3) -> str:
     return html.escape(str(value))
 
 
-def metric_rows(summary: dict, postprocess: list[str]) -> list[tuple[str, dict]]:
-    """(label, {metric: value}) rows of the evaluation protocol, in reading order."""
-    rows = [("rainy input (floor)", "rainy_input_"), ("render, training views", "train_")]
-    rows += [(f"render + {p}, training views", f"train_{p}_") for p in postprocess]
-    rows.append(("render, held-out views", "heldout_"))
-    out = []
-    for label, prefix in rows:
-        values = {m: summary.get(prefix + m) for m in METRICS}
-        if any(v is not None for v in values.values()):
-            out.append((label, values))
-    return out
+def metric_rows(summary: dict, postprocess: list[str]) -> list[tuple[str, list[Metric]]]:
+    """(label, its image metrics) rows of the evaluation protocol, in reading order; rows
+    without a value left out."""
+    rows = [("rainy input (floor)", [rainy_input(m) for m in IMAGE_MEASURES]),
+            ("render, training views", [render(m, "train") for m in IMAGE_MEASURES])]
+    rows += [(f"render + {p}, training views", [post(m, p) for m in IMAGE_MEASURES]) for p in postprocess]
+    rows.append(("render, held-out views", [render(m, "heldout") for m in IMAGE_MEASURES]))
+    return [(label, metrics) for label, metrics in rows if any(m.of(summary) is not None for m in metrics)]
 
 
 def metric_table(metrics: dict) -> str:
-    rows = metric_rows(metrics.get("summary", {}), metrics.get("postprocess", []))
+    summary = metrics.get("summary", {})
+    rows = metric_rows(summary, metrics.get("postprocess", []))
     if not rows:
         return "<p>No metrics against clean images (the scene has none).</p>" + evaluated_note(metrics)
-    head = "<tr><th></th><th>PSNR ↑</th><th>SSIM ↑</th><th>LPIPS ↓</th></tr>"
-    body = "".join(
-        f"<tr><td>{html.escape(label)}</td><td>{_fmt(v['psnr'], 2)}</td><td>{_fmt(v['ssim'])}</td>"
-        f"<td>{_fmt(v['lpips']) if v['lpips'] is not None else 'n/a'}</td></tr>" for label, v in rows)
+    head = "<tr><th></th>" + "".join(f"<th>{m.title} {m.arrow}</th>" for m in IMAGE_MEASURES) + "</tr>"
+    def cell(m: Metric) -> str:  # LPIPS may be unavailable here (the note says why)
+        return m.measure.format(m.of(summary), missing="n/a" if m.measure is LPIPS else "–")
+
+    body = "".join(f"<tr><td>{html.escape(label)}</td>" + "".join(f"<td>{cell(m)}</td>" for m in ms) + "</tr>"
+                   for label, ms in rows)
     note = ""
     lp = metrics.get("lpips", {})
     if lp and not lp.get("available", False):
@@ -201,15 +204,12 @@ def evaluated_note(metrics: dict) -> str:
             "measures every view.</p>")
 
 
+RAIN_ROWS = (rain_stat(RAIN_ANGLE), rain_stat(RESIDUAL_ANGLE), rain_stat(TRUE_ANGLE), rain_stat(ANGLE_ERROR),
+             rain_stat(CORRELATION), render(RAIN_RECOVERED, "train"), render(RAIN_KEPT, "train"))
+
+
 def rain_table(summary: dict) -> str:
-    names = [("rain_angle_deg", "predicted rain streak angle (deg)"),
-             ("residual_angle_deg", "streak angle of the residual I - B (deg)"),
-             ("rain_angle_true_deg", "true rain streak angle (deg)"),
-             ("rain_angle_error_deg", "angle error, predicted vs true (deg)"),
-             ("rain_correlation", "correlation, predicted vs true rain layer"),
-             ("train_rain_recovered", "share of the true rain the predicted rain holds"),
-             ("train_rain_kept", "share of the true rain the render still shows")]
-    rows = [(label, summary[k]) for k, label in names if k in summary]
+    rows = [(m.measure.title, m.of(summary)) for m in RAIN_ROWS if m.key in summary]
     if not rows:
         return ""
     body = "".join(f"<tr><td>{html.escape(l)}</td><td>{_fmt(v)}</td></tr>" for l, v in rows)
@@ -219,15 +219,21 @@ def rain_table(summary: dict) -> str:
 
 
 def per_view_table(rows: list[dict]) -> str:
+    """The per-view values, one table per split (their keys differ: each names its split)."""
     if not rows:
         return ""
-    keys = [k for k in dict.fromkeys(k for r in rows for k in r) if k not in ("view", "split")]
-    head = "<tr><th>view</th><th>split</th>" + "".join(f"<th>{html.escape(k)}</th>" for k in keys) + "</tr>"
-    body = "".join(
-        f"<tr><td>{html.escape(r['view'])}</td><td>{r['split']}</td>"
-        + "".join(f"<td>{_fmt(r.get(k))}</td>" for k in keys) + "</tr>" for r in rows)
+    tables = []
+    for split in SPLITS:
+        mine = [r for r in rows if r.get("split") == split]
+        if not mine:
+            continue
+        keys = [k for k in dict.fromkeys(k for r in mine for k in r) if k not in ("view", "split")]
+        head = "<tr><th>view</th>" + "".join(f"<th>{html.escape(k)}</th>" for k in keys) + "</tr>"
+        body = "".join(f"<tr><td>{html.escape(r['view'])}</td>"
+                       + "".join(f"<td>{_fmt(r.get(k))}</td>" for k in keys) + "</tr>" for r in mine)
+        tables.append(f"<p class='note'>{split} views</p><table>{head}{body}</table>")
     return (f"<details><summary>Per-view values ({len(rows)} views)</summary>"
-            f"<table>{head}{body}</table></details>")
+            f"{''.join(tables)}</details>")
 
 
 # ------------------------------------------------------------------------------ images
