@@ -1,9 +1,10 @@
 """The whole ``rs-train`` job: the scene (the embedded demo when none is given), training in a
 run folder, and the evaluation protocol with its report when the run is complete.
 
-It composes the layers below it (engine, eval, synth) so that none of them needs another:
-the engine trains whatever it is given, evaluation evaluates a pipeline, the simulator
-makes scenes. ``rs-train`` and ``rs-bench`` call :func:`train_and_evaluate`.
+It composes the layers below it (engine, eval, synth, process) so that none of them needs
+another: the engine trains whatever it is given, evaluation evaluates a pipeline, the
+simulator makes scenes, process triangulates sparse points for a field that starts from them
+when the scene has none. ``rs-train`` and ``rs-bench`` call :func:`train_and_evaluate`.
 
 The evaluation at the end of training is bounded by views, never by time: a fixed subset of
 ``trainer.final_eval_views`` views over both splits (the same for every run of a scene), so
@@ -14,12 +15,17 @@ the protocol on every view.
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 from rainyscape.config import PipelineConfig
 from rainyscape.engine.run import Run, RunResult, open_run, recording_failures, write_status
+from rainyscape.errors import warn
+from rainyscape.eval.report import POINTS_RECORD, points_line
+from rainyscape.scene import SceneData
 
 
 def with_scene(cfg: PipelineConfig) -> PipelineConfig:
@@ -30,6 +36,65 @@ def with_scene(cfg: PipelineConfig) -> PipelineConfig:
     from rainyscape.synth.demo import ensure_demo_scene
 
     return dataclasses.replace(cfg, data=str(ensure_demo_scene()))
+
+
+def wants_sparse_points(cfg: PipelineConfig) -> bool:
+    """Whether the run's field starts from the scene's sparse points: its ``init`` option is
+    ``auto`` or ``points`` (the Gaussian field's; ``field.init=random`` or ``frustum`` do not)."""
+    return getattr(cfg.field.options, "init", None) in ("auto", "points")
+
+
+def sparse_points_step(cfg: PipelineConfig) -> Callable[[SceneData], SceneData] | None:
+    """What completes the scene before the field is built: for a field that starts from sparse
+    points, points triangulated from the training views (cached) when the scene has none."""
+    if not wants_sparse_points(cfg):
+        return None
+
+    def add_points(scene: SceneData) -> SceneData:
+        if scene.points is not None and len(scene.points):
+            return scene
+        if len(scene.train_indices) < 2:
+            return scene
+        import torch
+
+        from rainyscape.process.scene_points import with_sparse_points
+        from rainyscape.process.triangulate import TriangulationOptions
+
+        print(f"sparse points: {scene.name} has none; triangulating them from its "
+              f"{len(scene.train_indices)} training views (pycolmap, known poses) ...", file=sys.stderr)
+        try:
+            return with_sparse_points(scene, TriangulationOptions(num_threads=torch.get_num_threads()))
+        except (RuntimeError, ValueError, OSError) as exc:  # a failed SfM step must not stop training
+            warn(f"triangulating sparse points failed ({type(exc).__name__}: {exc}); the field "
+                 "starts without them")
+            return dataclasses.replace(scene, points_source=f"none (triangulation failed: {exc})")
+
+    return add_points
+
+
+def points_record(cfg: PipelineConfig, scene: SceneData) -> dict:
+    """What the log and the report say of the points the field started from."""
+    count = 0 if scene.points is None else int(len(scene.points))
+    record = {"points": count, "source": scene.points_source,
+              "field_init": getattr(cfg.field.options, "init", None)}
+    details = scene.metadata.get("sparse_points")
+    if details:
+        record["triangulation"] = details
+    return record
+
+
+def log_points(run: Run) -> None:
+    """One console line and, on a fresh run, one log.jsonl record (step 0) about the field's
+    starting points; nothing for a field that does not start from points."""
+    cfg = run.pipeline.config
+    if getattr(cfg.field.options, "init", None) is None:
+        return
+    record = points_record(cfg, run.pipeline.scene)
+    print(f"sparse points: {points_line(record)}", file=sys.stderr)
+    log = run.run_dir / "log.jsonl"
+    if run.trainer.step == 0 and not (log.is_file() and f'"{POINTS_RECORD}"' in log.read_text()):
+        with open(log, "a") as fh:
+            fh.write(json.dumps({"step": 0, POINTS_RECORD: record}) + "\n")
 
 
 def final_evaluation(run: Run) -> dict:
@@ -59,7 +124,9 @@ def train_and_evaluate(cfg: PipelineConfig, run_dir: Path | None = None) -> RunR
 
     metrics: dict = {}
     with open_run(with_scene(cfg), run_dir,
-                  evaluator=lambda pipeline: quick_eval(pipeline, cfg.trainer.eval_views)) as run:
+                  evaluator=lambda pipeline: quick_eval(pipeline, cfg.trainer.eval_views),
+                  prepare_scene=sparse_points_step(cfg)) as run:
+        log_points(run)
         with recording_failures(run.run_dir):
             run.trainer.train()
             if run.finished:

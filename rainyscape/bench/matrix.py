@@ -154,13 +154,20 @@ def build_cells(methods: list[str], scenes: list[tuple[str, str]], overrides: li
 
 
 def cell_config(cell: Cell):
-    """The typed config a cell trains (ConfigError naming the cell when it does not build)."""
+    """The typed config a cell trains (ConfigError naming the cell when it does not build, or
+    when it would start from ground-truth depth)."""
     from rainyscape.config import method_config
 
     try:
-        return method_config(cell.method, [f"data={cell.data}", *cell.overrides])
+        cfg = method_config(cell.method, [f"data={cell.data}", *cell.overrides])
     except ConfigError as exc:
         raise ConfigError(f"{cell.key.strip('/')}: {exc}") from None
+    if getattr(cfg.dataparser.options, "points_from_depth", False):
+        raise ConfigError(f"{cell.key.strip('/') or 'rs-bench'}: dataparser.points_from_depth=true starts "
+                          "3DGS from the simulator's ground-truth depth, which no capture has; a "
+                          "benchmark never uses it (its 3DGS rows start from points triangulated "
+                          "from the training views)")
+    return cfg
 
 
 def validate_cells(cells: list[Cell]) -> None:

@@ -42,6 +42,12 @@ class ProcessArgs:
     loop_detection: bool = opt(True, "sequential matching: detect loops")
     vocab_tree: str = opt("", "COLMAP vocabulary tree for loop detection (default: built from the clip)")
     max_features: int = opt(8192, "SIFT features per frame", lo=64, hi=1_000_000)
+    affine_shape: bool = opt(True, "SIFT with affine shape estimation (features that survive the viewpoint "
+                                   "changes of an orbit)")
+    domain_size_pooling: bool = opt(False, "DSP-SIFT descriptors (slower)")
+    exif_focal: bool = opt(True, "photos: start from the focal length their EXIF gives")
+    retry: bool = opt(True, "when frames are left out, map again with relaxed registration "
+                            "thresholds and keep the model that registers more")
     min_registered: float = opt(0.5, "fail when fewer frames than this fraction register", hi=1.0, above=0.0)
     init_min_tri_angle: float = opt(16.0, "degrees of parallax the first frame pair needs (lower it, "
                                           "e.g. to 4, for narrow baselines such as a stereo pair)",
@@ -86,7 +92,9 @@ def main(argv: list[str]) -> int:
     sfm = SfmOptions(camera_model=opts.camera_model, single_camera=not opts.camera_per_image,
                      matcher=opts.matcher or ("sequential" if kind == "video" else "exhaustive"),
                      overlap=opts.overlap, loop_detection=opts.loop_detection, vocab_tree=opts.vocab_tree,
-                     max_features=opts.max_features, min_registered=opts.min_registered,
+                     max_features=opts.max_features, affine_shape=opts.affine_shape,
+                     domain_size_pooling=opts.domain_size_pooling, exif_focal=opts.exif_focal,
+                     retry=opts.retry, min_registered=opts.min_registered,
                      init_min_tri_angle=opts.init_min_tri_angle,
                      num_threads=opts.num_threads, seed=opts.seed, verbose=opts.verbose)
     options = ProcessOptions(frames=frames, sfm=sfm, overwrite=opts.overwrite, progress=not opts.quiet)

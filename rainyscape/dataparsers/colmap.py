@@ -145,5 +145,5 @@ class ColmapParser(DataParser):
                               images=torch.from_numpy(stack), cameras=cameras,
                               image_names=[v.name for v in views], points=points,
                               clean_images=None if clean_stack is None else torch.from_numpy(clean_stack),
-                              point_colors=colors, near=near, far=far, metadata=metadata,
-                              image_files=files)
+                              point_colors=colors, points_source="colmap model", near=near, far=far,
+                              metadata=metadata, image_files=files)

@@ -30,6 +30,9 @@ from rainyscape.errors import DataError
 from rainyscape.scene import SceneData
 
 
+GT_DEPTH_SOURCE = "ground-truth depth (dataparser.points_from_depth=true, not a real capture's)"
+
+
 @dataclass
 class MayaCsvConfig(CommonParserConfig):
     cameras: str = "cameras.csv"  # relative to the scene folder
@@ -38,8 +41,11 @@ class MayaCsvConfig(CommonParserConfig):
     depth: str = "depth"  # folder of <stem>.mat depth maps ("" or missing: none)
     depth_key: str = "depth"
     rain: str = "rain"  # folder of <stem>.png RGBA rain layers ("" or missing: none)
-    points_from_depth: bool = True  # sparse points for 3DGS: back-projected depth samples
-    max_points: int = bounded(20000, 0, 10_000_000)
+    # Sparse points for 3DGS back-projected from the GROUND-TRUTH depth maps: information no
+    # capture has, so off by default (3DGS then starts from points triangulated from the rainy
+    # training views) and refused by rs-bench. For studies of initialisation only.
+    points_from_depth: bool = False
+    max_points: int = bounded(20000, 0, 10_000_000)  # points_from_depth: at most this many
     check_units: bool = True  # reject radians / inches that would silently give wrong cameras
 
 
@@ -191,7 +197,8 @@ class MayaCsvParser(DataParser):
         return assemble_scene(
             cfg, name=root.resolve().name, source=root, images=images, cameras=cameras,
             image_names=[p.name for p in files], clean_images=clean, depths=depths, rain_layers=rain,
-            points=points, point_colors=colors, near=near, far=far, image_files=files,
+            points=points, point_colors=colors, points_source=GT_DEPTH_SOURCE, near=near, far=far,
+            image_files=files,
             metadata={"format": "maya-csv", "world": "Maya, Y up", "cameras_csv": str(csv_path),
                       **simulated_rain(root)})
 

@@ -34,6 +34,7 @@ from rainyscape.engine.trainer import Trainer, seed_everything
 from rainyscape.errors import ConfigError, DataError, RainyScapeError
 from rainyscape.formats.atomic import write_text_atomic
 from rainyscape.formats.output import check_writable
+from rainyscape.scene import SceneData
 
 
 @dataclass
@@ -128,14 +129,16 @@ def scene_folder(cfg: PipelineConfig) -> Path:
 
 
 def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
-             evaluator: Callable[[Pipeline], dict] | None = None) -> Run:
+             evaluator: Callable[[Pipeline], dict] | None = None,
+             prepare_scene: Callable[[SceneData], SceneData] | None = None) -> Run:
     """A new run folder for ``cfg`` (or ``run_dir`` reopened to resume): locked, scene,
     pipeline and trainer built, checkpoint loaded. ``evaluator(pipeline)`` is the trainer's
-    periodic evaluation. Input errors surface before any folder is made; a folder another
-    process trains in raises RunBusyError before anything in it changes, and so does anything
-    that fails before training starts (a resume that does not fit leaves config.yml and
-    status.json as they were). Close the run (``with open_run(...) as run``) to release the
-    lock."""
+    periodic evaluation; ``prepare_scene(scene)`` completes the parsed scene before the
+    pipeline is built (the workflow adds sparse points there). Input errors surface before any
+    folder is made; a folder another process trains in raises RunBusyError before anything in
+    it changes, and so does anything that fails before training starts (a resume that does not
+    fit leaves config.yml and status.json as they were). Close the run (``with open_run(...) as
+    run``) to release the lock."""
     device = resolve_device(cfg.trainer.device)
     if run_dir is None:
         check_output_dir(cfg.trainer.output_dir)
@@ -147,6 +150,8 @@ def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
     try:
         seed_everything(cfg.trainer.seed)
         scene = load_scene(cfg, scene_folder(cfg))
+        if prepare_scene is not None:
+            scene = prepare_scene(scene)
         cfg = with_run_length(cfg, len(scene.train_indices))
         if run_dir is None:
             created = new_run_dir(cfg.trainer.output_dir, scene.name, cfg.method)

@@ -16,6 +16,7 @@ from rainyscape.eval.metric_keys import (ANGLE_ERROR, CORRELATION, IMAGE_MEASURE
                                          quick_key, rain_stat, rainy_input, render)
 from rainyscape.formats.atomic import write_text_atomic
 
+POINTS_RECORD = "scene_points"  # log.jsonl: the sparse points the field started from (step 0)
 MAX_STRIPS = 6  # comparison strips shown (rs-render writes one per view under renders/strips)
 CSS = """
 body{font-family:system-ui,sans-serif;margin:24px auto;max-width:1200px;color:#222;padding:0 16px}
@@ -30,19 +31,48 @@ pre{background:#f7f7f7;padding:8px;overflow:auto;font-size:12px}.note{color:#666
 # ----------------------------------------------------------------------------- reading
 
 
-def read_log(path: Path) -> tuple[list[dict], list[dict]]:
-    """Training records and evaluation records of a run's log.jsonl (bad lines skipped:
-    a run killed mid-write leaves a truncated last line)."""
-    train, evals = [], []
+def _records(path: Path) -> list[dict]:
+    """The records of a run's log.jsonl (bad lines skipped: a run killed mid-write leaves a
+    truncated last line)."""
     if not path.is_file():
-        return train, evals
+        return []
+    records = []
     for line in path.read_text().splitlines():
         try:
             rec = json.loads(line)
         except json.JSONDecodeError:
             continue
-        (evals if "eval" in rec else train).append(rec)
+        if isinstance(rec, dict):
+            records.append(rec)
+    return records
+
+
+def read_log(path: Path) -> tuple[list[dict], list[dict]]:
+    """Training records and evaluation records of a run's log.jsonl."""
+    train, evals = [], []
+    for rec in _records(path):
+        if POINTS_RECORD not in rec:
+            (evals if "eval" in rec else train).append(rec)
     return train, evals
+
+
+def read_points_record(path: Path) -> dict | None:
+    """The log's record of the sparse points the field started from (None: not logged)."""
+    found = [rec[POINTS_RECORD] for rec in _records(path) if isinstance(rec.get(POINTS_RECORD), dict)]
+    return found[-1] if found else None
+
+
+def points_line(record: dict) -> str:
+    """The points record in words: count, source, and the triangulation's figures."""
+    text = f"{record.get('points', 0)}, {record.get('source', 'unknown source')}"
+    tri = record.get("triangulation")
+    if tri:
+        text += f"; {tri.get('views')} training views"
+        if tri.get("points"):
+            text += (f", mean track {tri['mean_track_length']:.1f} views, mean reprojection error "
+                     f"{tri['mean_reprojection_error']:.2f} px")
+        text += ", from the cache" if tri.get("cached") else f", {tri.get('seconds', 0):.1f} s"
+    return text + f" (field.init={record.get('field_init')})"
 
 
 def _read_json(path: Path) -> dict:
@@ -282,6 +312,9 @@ def build_report(run_dir: Path) -> str:
     parts = [f"<h1>RainyScape run: {html.escape(title)}</h1>",
              f"<p class='note'>{html.escape(str(run_dir.resolve()))} · step {step} of "
              f"{_max_iters(run_dir)}{html.escape(note)} · {html.escape(str(status.get('time', '')))}</p>"]
+    points = read_points_record(run_dir / "log.jsonl")
+    if points is not None:
+        parts.append(f"<p class='note'>Initial sparse points: {html.escape(points_line(points))}</p>")
     parts.append("<h2>Metrics</h2>" + (metric_table(metrics) if metrics else
                                        "<p>No metrics.json yet (run rs-eval RUN_DIR).</p>"))
     parts.append(rain_table(metrics.get("summary", {})))
