@@ -7,7 +7,6 @@ predicted rain layer correlates with the true one. Every number is written under
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from torch import Tensor
 
 from rainyscape.components import MaskFusion
 from rainyscape.engine.pipeline import Pipeline
+from rainyscape.engine.run_dir import RunFolder
 from rainyscape.eval.images import save_strip
 from rainyscape.eval.metric_keys import (COVERAGE, LPIPS, PSNR, PSNR_DRY, PSNR_IN_RAIN, PSNR_VS_RAINY, RAIN_KEPT,
                                          RAIN_RECOVERED, SSIM, Measure, Metric, control, post, rainy_input,
@@ -25,7 +25,6 @@ from rainyscape.eval.rain_stats import angle_options, true_rain_directions, view
 from rainyscape.eval.report import write_report
 from rainyscape.eval.summary import summarize
 from rainyscape.eval.views import ViewImages, progress, view_images
-from rainyscape.formats.atomic import write_text_atomic
 from rainyscape.imaging.metrics import masked_psnr, psnr, ssim
 
 STRIP_VIEWS = 3  # training views whose comparison strips evaluation saves for the report
@@ -146,11 +145,11 @@ def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None, views: li
     the result says how many views were measured and names them. The result depends on the
     weights and the views only (no time, no clock): two evaluations of the same weights give
     the same metrics. With ``run_dir`` it also saves the comparison strips of a few training
-    views under ``run_dir/renders/strips`` (used by the report), once every view is measured."""
+    views in the run folder (used by the report), once every view is measured."""
     lpips = load_lpips(pipeline.device)
     rows, kept = evaluate_views(pipeline, lpips, keep=STRIP_VIEWS if run_dir is not None else 0, views=views)
     for v in kept:
-        save_strip(v, Path(run_dir) / "renders" / "strips" / f"{Path(v.name).stem}.png")
+        save_strip(v, RunFolder(run_dir).strips / f"{Path(v.name).stem}.png")
     scene = pipeline.scene
     return {
         "scene": scene.name,
@@ -171,15 +170,15 @@ def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None, views: li
 
 
 def write_metrics(run_dir: Path, metrics: dict) -> Path:
-    """Write ``metrics.json`` atomically, then the run's ``report.html`` presenting it.
+    """Write the run's metrics atomically, then the report presenting them.
 
     A report that cannot be written is reported on stderr and does not fail the run (the
     metrics are safe; ``rs-eval RUN_DIR`` rebuilds it)."""
-    path = Path(run_dir) / "metrics.json"
-    write_text_atomic(path, json.dumps(metrics, indent=2))
+    folder = RunFolder(run_dir)
+    path = folder.save_metrics(metrics)
     try:
         write_report(run_dir)
     except Exception as exc:  # the report is a view of the metrics; never lose a run over it
-        print(f"rainyscape: warning: could not write {Path(run_dir) / 'report.html'}: "
+        print(f"rainyscape: warning: could not write {folder.report_file}: "
               f"{type(exc).__name__}: {exc}", file=sys.stderr)
     return path

@@ -8,9 +8,10 @@ from __future__ import annotations
 import base64
 import html
 import io
-import json
 from pathlib import Path
 
+from rainyscape.engine.run_dir import RunFolder
+from rainyscape.errors import RainyScapeError
 from rainyscape.eval.metric_keys import (ANGLE_ERROR, CORRELATION, IMAGE_MEASURES, LPIPS, RAIN_ANGLE, RAIN_KEPT,
                                          RAIN_RECOVERED, RESIDUAL_ANGLE, SPLITS, TRUE_ANGLE, Metric, post,
                                          quick_key, rain_stat, rainy_input, render)
@@ -31,34 +32,19 @@ pre{background:#f7f7f7;padding:8px;overflow:auto;font-size:12px}.note{color:#666
 # ----------------------------------------------------------------------------- reading
 
 
-def _records(path: Path) -> list[dict]:
-    """The records of a run's log.jsonl (bad lines skipped: a run killed mid-write leaves a
-    truncated last line)."""
-    if not path.is_file():
-        return []
-    records = []
-    for line in path.read_text().splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(rec, dict):
-            records.append(rec)
-    return records
-
-
-def read_log(path: Path) -> tuple[list[dict], list[dict]]:
-    """Training records and evaluation records of a run's log.jsonl."""
+def read_log(run_dir: Path) -> tuple[list[dict], list[dict]]:
+    """Training records and evaluation records of a run's log."""
     train, evals = [], []
-    for rec in _records(path):
+    for rec in RunFolder(run_dir).log_records():
         if POINTS_RECORD not in rec:
             (evals if "eval" in rec else train).append(rec)
     return train, evals
 
 
-def read_points_record(path: Path) -> dict | None:
+def read_points_record(run_dir: Path) -> dict | None:
     """The log's record of the sparse points the field started from (None: not logged)."""
-    found = [rec[POINTS_RECORD] for rec in _records(path) if isinstance(rec.get(POINTS_RECORD), dict)]
+    found = [rec[POINTS_RECORD] for rec in RunFolder(run_dir).log_records()
+             if isinstance(rec.get(POINTS_RECORD), dict)]
     return found[-1] if found else None
 
 
@@ -73,13 +59,6 @@ def points_line(record: dict) -> str:
                      f"{tri['mean_reprojection_error']:.2f} px")
         text += ", from the cache" if tri.get("cached") else f", {tri.get('seconds', 0):.1f} s"
     return text + f" (field.init={record.get('field_init')})"
-
-
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
 
 
 # ------------------------------------------------------------------------------- plots
@@ -285,24 +264,19 @@ def image_section(title: str, paths: list[Path], caption: str = "") -> str:
 # ------------------------------------------------------------------------------- page
 
 
-def _max_iters(run_dir: Path) -> str:
-    import yaml
-
+def _max_iters(folder: RunFolder) -> str:
     try:
-        return str(yaml.safe_load((run_dir / "config.yml").read_text())["trainer"]["max_iters"])
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return str(folder.config().trainer.max_iters)
+    except RainyScapeError:  # a config that no longer loads (a plugin gone): the page still shows
         return "?"
 
 
 def build_report(run_dir: Path) -> str:
-    from rainyscape.engine.run_dir import check_run_folder
-
-    run_dir = check_run_folder(Path(run_dir))
-    metrics = _read_json(run_dir / "metrics.json")
-    from rainyscape.engine.run import read_status  # a dead owner's "running" reads as interrupted
-
-    status = read_status(run_dir)
-    train, evals = read_log(run_dir / "log.jsonl")
+    folder = RunFolder.check(run_dir)
+    run_dir = folder.path
+    metrics = folder.metrics()
+    status = folder.status()  # a dead owner's "running" reads as interrupted
+    train, evals = read_log(run_dir)
     title = f"{metrics.get('method', run_dir.parent.name)} on {metrics.get('scene', run_dir.parent.parent.name)}"
     step = train[-1]["step"] if train else status.get("step", 0)
     state = status.get("state", "")
@@ -311,12 +285,12 @@ def build_report(run_dir: Path) -> str:
     note = f" · {state}" if state in ("failed", "interrupted", "stopped") else ""
     parts = [f"<h1>RainyScape run: {html.escape(title)}</h1>",
              f"<p class='note'>{html.escape(str(run_dir.resolve()))} · step {step} of "
-             f"{_max_iters(run_dir)}{html.escape(note)} · {html.escape(str(status.get('time', '')))}</p>"]
-    points = read_points_record(run_dir / "log.jsonl")
+             f"{_max_iters(folder)}{html.escape(note)} · {html.escape(str(status.get('time', '')))}</p>"]
+    points = read_points_record(run_dir)
     if points is not None:
         parts.append(f"<p class='note'>Initial sparse points: {html.escape(points_line(points))}</p>")
     parts.append("<h2>Metrics</h2>" + (metric_table(metrics) if metrics else
-                                       "<p>No metrics.json yet (run rs-eval RUN_DIR).</p>"))
+                                       f"<p>No {RunFolder.METRICS} yet (run rs-eval RUN_DIR).</p>"))
     parts.append(rain_table(metrics.get("summary", {})))
     plots = [("Loss terms", loss_plot(train)),
              ("PSNR during training (paper Fig. 2 and 6)", psnr_plot(train, evals)),
@@ -324,15 +298,15 @@ def build_report(run_dir: Path) -> str:
     for name, uri in plots:
         if uri:
             parts.append(f"<h2>{name}</h2><img alt='{html.escape(name)}' src='{uri}'>")
-    strips = sorted((run_dir / "renders" / "strips").glob("*.png"))[:MAX_STRIPS]
+    strips = sorted(folder.strips.glob("*.png"))[:MAX_STRIPS]
     parts.append(image_section("Comparison strips", strips,
                                "rainy input | render | (post-processed) | ground truth | predicted rain | true rain"))
     parts.append(image_section("Embedding study (paper Fig. 8)",
-                               sorted((run_dir / "renders").glob("embedding_study*.png")),
+                               sorted(folder.renders.glob("embedding_study*.png")),
                                "predicted rain with N(0, 0.5) noise added to the scene state s, "
                                "the view vector v and the camera vector p"))
     parts.append(per_view_table(metrics.get("per_view", [])))
-    config_text = (run_dir / "config.yml").read_text()
+    config_text = folder.config_text()
     parts.append(f"<h2>Configuration</h2><pre>{html.escape(config_text)}</pre>")
     body = "\n".join(p for p in parts if p)
     return (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
@@ -340,4 +314,4 @@ def build_report(run_dir: Path) -> str:
 
 
 def write_report(run_dir: Path) -> Path:
-    return write_text_atomic(Path(run_dir) / "report.html", build_report(run_dir))
+    return write_text_atomic(RunFolder(run_dir).report_file, build_report(run_dir))
