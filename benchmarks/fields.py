@@ -41,7 +41,9 @@ def clean_demo_overrides(data: str) -> list[str]:
 
 def build(method: str, overrides: list[str], out: Path):
     from rainyscape import config
-    from rainyscape.engine.pipeline import build_pipeline, load_scene, resolve_device
+    from rainyscape.engine.pipeline import build_pipeline
+    from rainyscape.engine.scene_loading import load_scene
+    from rainyscape.engine.device import resolve_device
     from rainyscape.engine.run import scene_folder
     from rainyscape.engine.trainer import Trainer, seed_everything
     from rainyscape.workflow import with_scene

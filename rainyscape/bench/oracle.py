@@ -65,7 +65,7 @@ def scene_oracle(folder: str, cfg) -> dict:
     import torch
     import torch.nn.functional as F
 
-    from rainyscape.engine.pipeline import load_scene
+    from rainyscape.engine.scene_loading import load_scene
     from rainyscape.errors import RainyScapeError
     from rainyscape.eval.metric_keys import PSNR, SSIM
     from rainyscape.imaging.metrics import psnr, ssim

@@ -102,7 +102,7 @@ def scene_shape(plan: ScenePlan, cfg) -> tuple[int, int, int]:
         factor = max(1, int(getattr(options, "downscale", 1) or 1))
         train, _ = split_indices(plan.rows * plan.cols, getattr(options, "holdout_every", 8))
         return plan.width // factor, plan.height // factor, len(train)
-    from rainyscape.engine.pipeline import load_scene
+    from rainyscape.engine.scene_loading import load_scene
 
     scene = load_scene(cfg, Path(plan.folder))
     if scene.clean_images is None:  # every cell would score n/a, and say nothing

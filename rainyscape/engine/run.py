@@ -11,9 +11,11 @@ from pathlib import Path
 from typing import Callable
 
 from rainyscape.config import PipelineConfig, with_run_length
+from rainyscape.engine.device import resolve_device
 from rainyscape.engine.lock import RunLock
-from rainyscape.engine.pipeline import Pipeline, build_pipeline, load_scene, resolve_device
+from rainyscape.engine.pipeline import Pipeline, build_pipeline
 from rainyscape.engine.run_dir import NewRunDir, RunFolder, check_output_dir, new_run_dir, reached_end
+from rainyscape.engine.scene_loading import load_scene
 from rainyscape.engine.trainer import Trainer, seed_everything
 from rainyscape.errors import ConfigError, DataError
 from rainyscape.formats.output import check_writable

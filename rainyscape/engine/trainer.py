@@ -24,8 +24,9 @@ from rainyscape.components import (Energy, LatentModel, LossContext, ParamGroup,
 from rainyscape.config import PhaseConfig
 from rainyscape.engine import snapshot
 from rainyscape.engine.checkpoint import checkpoint_path, load_checkpoint
+from rainyscape.engine.loss_sum import compute_losses
 from rainyscape.engine.phases import PhaseSchedule
-from rainyscape.engine.pipeline import Pipeline, compute_losses
+from rainyscape.engine.pipeline import Pipeline
 from rainyscape.engine.progress import ProgressBar
 from rainyscape.engine.run_dir import RunFolder, fitting_the_run
 from rainyscape.engine.sampling import MAX_WHOLE_IMAGE_PIXELS, batch_count, gather_pixels, sample_windows
