@@ -54,7 +54,7 @@ class Trainer:
     ``trainer.eval_every`` steps and its numbers go to the log and the progress line."""
 
     def __init__(self, pipeline: Pipeline, run_dir: RunFolder | Path, evaluate: Callable[[], dict] | None = None):
-        self.p = pipeline
+        self.pipeline = pipeline
         self.cfg = pipeline.config.trainer
         self.folder = run_dir if isinstance(run_dir, RunFolder) else RunFolder(run_dir)
         self.run_dir = self.folder.path
@@ -71,7 +71,7 @@ class Trainer:
         self.step = 0
         self.groups = self._param_groups()
         self.optimizers = self._make_optimizers()
-        self.callbacks = list(self.p.field.callbacks())
+        self.callbacks = list(self.pipeline.field.callbacks())
         self.batch_sizes = {name: batch_count(p.patches, p.patch_size, self.scene.width, self.scene.height)
                             for name, p in pipeline.config.phases.items()}
         self.last_save = time.monotonic()
@@ -80,7 +80,7 @@ class Trainer:
 
     def _param_groups(self) -> dict[str, list[ParamGroup]]:
         """Each model's parameter groups, by pipeline key."""
-        return {key: list(model.param_groups()) for key, model in self.p.models().items()}
+        return {key: list(model.param_groups()) for key, model in self.pipeline.models().items()}
 
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         groups = [g for gs in self.groups.values() for g in gs]
@@ -118,19 +118,19 @@ class Trainer:
         for cb in self.callbacks:
             cb.before_step(state)
         view_ids, window, target = self._batch(name, phase)
-        self.p.field.train()
-        out = self.p.field.render(self.cameras[view_ids], window)
-        heads = [self.p.heads[key] for key in phase.heads]
+        self.pipeline.field.train()
+        out = self.pipeline.field.render(self.cameras[view_ids], window)
+        heads = [self.pipeline.heads[key] for key in phase.heads]
         layers: dict[str, Tensor] = {}
         for head in heads:
             head.train()
             layers[head.layer] = head(view_ids.to(self.device), window)
         ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window)
-        terms = self.p.loss_terms(name)
+        terms = self.pipeline.loss_terms(name)
         total, values = compute_losses(terms, ctx)
         # the field's own losses fit what the layers leave of the input
         field_target = target if not layers else (target - sum(layers.values())).detach()
-        for key, value in self.p.field.extra_losses(out, field_target).items():
+        for key, value in self.pipeline.field.extra_losses(out, field_target).items():
             total = total + value
             values[f"field.{key}"] = float(value.detach())
         for opt in self.optimizers.values():
@@ -175,8 +175,8 @@ class Trainer:
     # ------------------------------------------------------------- checkpoints
 
     def _parts(self) -> snapshot.TrainingParts:
-        return snapshot.TrainingParts(self.p.models(), self.optimizers,
-                                      {k: t for k, (_, t) in self.p.losses.items()},
+        return snapshot.TrainingParts(self.pipeline.models(), self.optimizers,
+                                      {k: t for k, (_, t) in self.pipeline.losses.items()},
                                       self.callbacks, self.generator)
 
     def save(self) -> Path:
@@ -193,7 +193,7 @@ class Trainer:
         else:
             state = load_checkpoint(path, self.device)
         with fitting_the_run(path):
-            snapshot.restore_models(state, self.p.models())
+            snapshot.restore_models(state, self.pipeline.models())
             # Fields may change their parameter set (densification): rebuild optimisers, then load.
             self.groups = self._param_groups()
             self.optimizers = self._make_optimizers()
@@ -212,7 +212,7 @@ class Trainer:
         self.folder.cut_log(self.step)
 
     def _announce_batches(self) -> None:
-        for name, phase in self.p.config.phases.items():
+        for name, phase in self.pipeline.config.phases.items():
             if self.batch_sizes[name] < phase.patches and self.phases.length(name):
                 w, h = self.scene.width, self.scene.height
                 print(f"phases.{name}: windows of whole {w}x{h} images; {phase.patches} of them a step "
@@ -243,7 +243,7 @@ class Trainer:
                 record = self.train_step()
                 record["time"] = round(time.time() - t0, 3)
                 if self.step % self.cfg.log_every == 0 or self.step == stop:
-                    record["stats"] = {f"field.{k}": v for k, v in self.p.field.stats().items()}
+                    record["stats"] = {f"field.{k}": v for k, v in self.pipeline.field.stats().items()}
                     self._log(record)
                 if (self.evaluate is not None and self.cfg.eval_every
                         and (self.step % self.cfg.eval_every == 0 or self.step == stop)):
