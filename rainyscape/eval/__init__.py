@@ -6,7 +6,7 @@
 - ``summary``: per-view rows -> the ``summary`` means; ``rain_stats``: streak angles of rain
   maps and their correlation with the true rain; ``perceptual``: LPIPS from local weights;
 - ``report``: ``report.html``; ``images``: tensors -> pictures (colour maps, strips);
-- ``render`` (rs-render's images and video), ``camera_path``, ``embedding`` (the paper's
+- ``run_renders`` (rs-render's images and video), ``camera_path``, ``embedding`` (the paper's
   Fig. 8), ``export`` (rs-export's meshes, 3DGS .ply and transforms.json).
 
 Layering: eval imports the engine and below, never ``rainyscape.bench`` or ``rainyscape.cli``.
