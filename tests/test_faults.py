@@ -599,7 +599,7 @@ def _user_folder(folder: Path) -> dict[str, bytes]:
 
 
 def test_case1_rs_bench_writes_only_its_own_files(toy_env, tiny_scene_dir, tmp_path, capsys):
-    from rainyscape.bench.output import BenchOutput, check_output, is_results_file, start_afresh
+    from rainyscape.comparison.output import BenchOutput, check_output, is_results_file, start_afresh
 
     d = tmp_path / "d"
     before = _user_folder(d)

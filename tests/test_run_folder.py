@@ -63,7 +63,7 @@ def test_finished_is_decided_by_run_folder_alone():
                         isinstance(s, ast.Constant) and s.value == "finished" for s in sides):
                     deciders.append(f"{p.relative_to(ROOT)}:{n.lineno}")
     assert len(deciders) == 1 and deciders[0].startswith("engine/run_dir.py:"), deciders  # RunFolder.finished
-    for asker in ("bench/cell.py", "cli/train.py"):
+    for asker in ("comparison/cell.py", "cli/train.py"):
         calls = [n for n in ast.walk(ast.parse((ROOT / asker).read_text()))
                  if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "finished"]
         assert calls, f"{asker} must ask RunFolder.finished"

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import torch
 
-from rainyscape.bench.matrix import CLEAN_IMAGES, build_cells, cell_config, clean_views
-from rainyscape.bench.options import BenchOptions
-from rainyscape.bench.plan import plan_bench
+from rainyscape.comparison.matrix import CLEAN_IMAGES, build_cells, cell_config, clean_views
+from rainyscape.comparison.options import BenchOptions
+from rainyscape.comparison.plan import plan_bench
 from rainyscape.cli.args import parse
 from rainyscape.cli.bench import COMMAND as BENCH
 from rainyscape.dataparsers.colmap import ColmapParser

@@ -148,8 +148,8 @@ def test_ground_truth_depth_starts_nothing_unless_asked(tiny_scene_dir):
 
 
 def test_rs_bench_refuses_ground_truth_depth_points():
-    from rainyscape.bench.options import BenchOptions
-    from rainyscape.bench.plan import plan_bench
+    from rainyscape.comparison.options import BenchOptions
+    from rainyscape.comparison.plan import plan_bench
     from rainyscape.errors import ConfigError
 
     with pytest.raises(ConfigError, match="points_from_depth=true starts 3DGS from the simulator's ground-truth"):

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import sys
 
-from rainyscape.bench.options import BenchOptions
+from rainyscape.comparison.options import BenchOptions
 from rainyscape.cli import run_cli
 from rainyscape.cli.args import Command, parse, print_help
 
@@ -43,7 +43,7 @@ def main(argv: list[str]) -> int:
     args = parse(argv, COMMAND)
     if args.help:
         return print_help(COMMAND)
-    from rainyscape.bench.run import run_bench
+    from rainyscape.comparison.run import run_bench
 
     command = " ".join(["rs-bench", *argv])
     json_path, md_path, failed = run_bench(args.options, args.overrides, command)

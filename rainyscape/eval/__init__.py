@@ -9,5 +9,5 @@
 - ``run_renders`` (rs-render's images and video), ``camera_path``, ``embedding`` (the paper's
   Fig. 8), ``export`` (rs-export's meshes, 3DGS .ply and transforms.json).
 
-Layering: eval imports the engine and below, never ``rainyscape.bench`` or ``rainyscape.cli``.
+Layering: eval imports the engine and below, never ``rainyscape.comparison`` or ``rainyscape.cli``.
 """

@@ -2,7 +2,7 @@
 peak memory is its own.
 
 The parent writes ``cell.json`` (method, overrides, output folder) and runs
-``python -m rainyscape.bench.cell CELL.json RESULT.json``; the child trains and writes
+``python -m rainyscape.comparison.cell CELL.json RESULT.json``; the child trains and writes
 ``result.json``. Console output of the child goes to ``bench.log`` in the cell's folder.
 """
 
@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from rainyscape.bench.matrix import Cell
+from rainyscape.comparison.matrix import Cell
 from rainyscape.engine.run_dir import RunFolder
 from rainyscape.errors import RainyScapeError
 
@@ -86,7 +86,7 @@ def run_cell_subprocess(cell: Cell, output_dir: Path, device: str, threads: int 
     result_path.unlink(missing_ok=True)
     env = dict(os.environ, OMP_NUM_THREADS=str(threads)) if threads > 0 else None
     with open(output_dir / "bench.log", "a") as log:
-        done = subprocess.run([sys.executable, "-m", "rainyscape.bench.cell", str(spec_path), str(result_path)],
+        done = subprocess.run([sys.executable, "-m", "rainyscape.comparison.cell", str(spec_path), str(result_path)],
                               stdout=log, stderr=subprocess.STDOUT, env=env)
     if done.returncode == 0 and result_path.is_file():
         return json.loads(result_path.read_text())
@@ -95,7 +95,7 @@ def run_cell_subprocess(cell: Cell, output_dir: Path, device: str, threads: int 
 
 
 def main(spec_path: str, result_path: str) -> int:
-    """Subprocess entry: ``python -m rainyscape.bench.cell CELL.json RESULT.json``."""
+    """Subprocess entry: ``python -m rainyscape.comparison.cell CELL.json RESULT.json``."""
     spec = json.loads(Path(spec_path).read_text())
     try:
         result = run_cell_here(spec)

@@ -8,11 +8,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
-from rainyscape.bench.budget import Budget, Mismatch, cell_budget, check_budgets
-from rainyscape.bench.matrix import SIMULATED_FORMAT, Cell, build_cells, cell_config, validate_cells
-from rainyscape.bench.options import BenchOptions
-from rainyscape.bench.scenes import ScenePlan, plan_scene
-from rainyscape.bench.sets import scene_set
+from rainyscape.comparison.budget import Budget, Mismatch, cell_budget, check_budgets
+from rainyscape.comparison.matrix import SIMULATED_FORMAT, Cell, build_cells, cell_config, validate_cells
+from rainyscape.comparison.options import BenchOptions
+from rainyscape.comparison.scenes import ScenePlan, plan_scene
+from rainyscape.comparison.sets import scene_set
 from rainyscape.config.overrides import uses_cuda
 from rainyscape.config.schema import check_range
 from rainyscape.errors import ConfigError
@@ -171,7 +171,7 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
                 rows=opts.scene_rows or (sset.rows if sset else 0), cols=opts.scene_cols or (sset.cols if sset else 0))
     specs = list(sset.presets) if sset else [s.strip() for s in opts.scenes.split(",") if s.strip()]
     if sset and sset.captures:  # made (once, cached) now: their sizes come from the folders
-        from rainyscape.bench.captures import real_scenes
+        from rainyscape.comparison.captures import real_scenes
 
         planned = [ScenePlan(label, folder=str(folder))
                    for label, folder in real_scenes(opts.captures, Path(opts.out) / "scenes")]

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from rainyscape.bench.budget import Budget
-from rainyscape.bench.matrix import CEILING, Cell
-from rainyscape.bench.oracle import ORACLE_SAMPLES
+from rainyscape.comparison.budget import Budget
+from rainyscape.comparison.matrix import CEILING, Cell
+from rainyscape.comparison.oracle import ORACLE_SAMPLES
 from rainyscape.eval.metric_keys import (ANGLE_ERROR, CORRELATION, COVERAGE, IMAGE_MEASURES, PSNR, PSNR_DRY,
                                          PSNR_IN_RAIN, Measure, control, post, rain_stat, rainy_input,
                                          render)

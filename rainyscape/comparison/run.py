@@ -10,15 +10,15 @@ import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from pathlib import Path
 
-from rainyscape.bench.cell import run_cell_subprocess
-from rainyscape.bench.matrix import Cell, cell_config
-from rainyscape.bench.options import BenchOptions
-from rainyscape.bench.oracle import cached_oracle, na_entry, scene_oracle, unavailable
-from rainyscape.bench.output import BenchOutput, check_name, check_output, start_afresh
-from rainyscape.bench.plan import plan_bench
-from rainyscape.bench.results import load_results, machine_description, save_results
-from rainyscape.bench.scenes import cache_folder, resolve_scene
-from rainyscape.bench.tables import markdown_report
+from rainyscape.comparison.cell import run_cell_subprocess
+from rainyscape.comparison.matrix import Cell, cell_config
+from rainyscape.comparison.options import BenchOptions
+from rainyscape.comparison.oracle import cached_oracle, na_entry, scene_oracle, unavailable
+from rainyscape.comparison.output import BenchOutput, check_name, check_output, start_afresh
+from rainyscape.comparison.plan import plan_bench
+from rainyscape.comparison.results import load_results, machine_description, save_results
+from rainyscape.comparison.scenes import cache_folder, resolve_scene
+from rainyscape.comparison.tables import markdown_report
 from rainyscape.engine.lock import RunLock
 from rainyscape.eval.metric_keys import PSNR, SSIM, render
 from rainyscape.formats.atomic import write_text_atomic
@@ -69,7 +69,7 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
     checked, every cell's config is built, and its budget computed and checked (methods of one
     field family on one scene must train the same steps on the same mean pixels per step,
     unless ``allow_unequal``); then what the benchmark would write over in ``out=`` must be
-    its own (:mod:`rainyscape.bench.output`), and the benchmark's lock free."""
+    its own (:mod:`rainyscape.comparison.output`), and the benchmark's lock free."""
     plan = plan_bench(opts, overrides)
     target = BenchOutput(Path(opts.out).expanduser(), check_name(opts.name or time.strftime("%Y-%m-%d")))
     cache = target.scenes
