@@ -3,11 +3,14 @@
 ``backend="auto"`` uses gsplat (CUDA) when the tensors are on a CUDA device and gsplat
 works there; on the CPU the compiled kernel (``cpp``, rasterize_cpp.py) when it was built,
 else the tiled torch rasteriser (also the one for CUDA without a working gsplat: one
-warning says so). The CPU paths first cull, cheaply and without gradients, the Gaussians
-that cannot be in view, and project, colour and composite the rest only; ``cpp`` does the
-projection and the compositing in C++ (colours stay in torch) for float32 renders whose
-cameras need no gradient; otherwise (float64, which the tests use as the tight reference)
-it falls back to the torch path.
+warning says so).
+
+The torch path first culls, cheaply and without gradients, the Gaussians that cannot be in
+view, and projects, colours and composites the rest only. ``cpp`` projects all of them in
+C++ (which culls as it goes, faster than subsetting the parameters in torch and routing
+their gradients back), evaluates SH colours in torch for the Gaussians some camera sees,
+and composites in C++. It runs float32 renders whose cameras need no gradient; others
+(float64, which the tests use as the tight reference) fall back to the torch path.
 """
 
 from __future__ import annotations

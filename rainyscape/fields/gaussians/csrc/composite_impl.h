@@ -91,8 +91,8 @@ inline void prefetch_entry(const Binning& b, int64_t k, int channels) {
 }
 
 // Tile-local column spans [lo[r], hi[r]] of rows r0..r1 that the ellipse reaches (lo > hi:
-// none); the same expression as col_span, computed for all rows before the pixel work so
-// that their square roots overlap instead of each waiting in line.
+// none): pixel centres x + 0.5 within xc -+ hw (kernel.h, Splat). Computed for all rows
+// before the pixel work, so that their square roots overlap instead of each waiting in line.
 inline void tile_spans(const Splat& p, const TileBox& box, int r0, int r1, int32_t* lo,
                        int32_t* hi) {
   if (!p.bounded) {

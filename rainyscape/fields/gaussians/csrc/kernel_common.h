@@ -105,23 +105,6 @@ inline bool row_range(const Splat& p, int y0, int h, int& r0, int& r1) {
   return true;
 }
 
-// Columns [lo, hi] within [c0, c1] of the pixel row centred at yc that the ellipse reaches.
-inline bool col_span(const Splat& p, double yc, int c0, int c1, int& lo, int& hi) {
-  double xl = c0, xh = c1;
-  if (p.bounded) {
-    const double dy = p.my - yc;
-    const double h2 = p.k1 - p.k2 * dy * dy;
-    if (!(h2 >= 0)) return false;
-    const double hw = std::sqrt(h2), xc = p.mx + p.slope * dy;
-    xl = std::max(xl, std::ceil(xc - hw - 0.5));
-    xh = std::min(xh, std::floor(xc + hw - 0.5));
-  }
-  if (!(xl <= xh)) return false;
-  lo = static_cast<int>(xl);
-  hi = static_cast<int>(xh);
-  return true;
-}
-
 struct TileBox {
   int64_t cam;
   int x0, y0, w, h;  // window pixels of the tile (clipped to the window)
