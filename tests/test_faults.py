@@ -34,7 +34,7 @@ from rainyscape import config, registry
 from rainyscape.cli import run_cli
 from rainyscape.engine.checkpoint import list_checkpoints, load_checkpoint
 from rainyscape.engine.run import load_run
-from rainyscape.engine.run_dir import RunFolder
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.errors import RainyScapeError
 from rainyscape.workflow import train_and_evaluate
 

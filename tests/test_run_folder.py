@@ -14,11 +14,11 @@ import torch
 from torch import nn
 
 from rainyscape.engine.checkpoint import save_checkpoint
-from rainyscape.engine.run_dir import RunFolder, reached_end
+from rainyscape.engine.run_folder import RunFolder, reached_end
 from rainyscape.errors import ConfigError, RainyScapeError
 
 ROOT = Path(__file__).resolve().parents[1] / "rainyscape"
-HOME = ROOT / "engine" / "run_dir.py"
+HOME = ROOT / "engine" / "run_folder.py"
 # torch hub keeps downloaded weights in its own "checkpoints" folder (not a run's)
 NOT_A_RUN = {("eval/perceptual.py", "checkpoints")}
 
@@ -43,7 +43,7 @@ def test_no_module_but_run_folder_names_its_files():
     assert {name for _, name in _spellings(HOME)} == {"status.json", "run.lock", "checkpoints"}
     found = [f"{p.relative_to(ROOT)}:{line}: {name}" for p in sorted(ROOT.rglob("*.py")) if p != HOME
              for line, name in _spellings(p) if (str(p.relative_to(ROOT)), name) not in NOT_A_RUN]
-    assert not found, "ask RunFolder (rainyscape/engine/run_dir.py):\n" + "\n".join(found)
+    assert not found, "ask RunFolder (rainyscape/engine/run_folder.py):\n" + "\n".join(found)
 
 
 def _reads_state(node: ast.AST) -> bool:
@@ -62,7 +62,7 @@ def test_finished_is_decided_by_run_folder_alone():
                 if any(_reads_state(s) for s in sides) and any(
                         isinstance(s, ast.Constant) and s.value == "finished" for s in sides):
                     deciders.append(f"{p.relative_to(ROOT)}:{n.lineno}")
-    assert len(deciders) == 1 and deciders[0].startswith("engine/run_dir.py:"), deciders  # RunFolder.finished
+    assert len(deciders) == 1 and deciders[0].startswith("engine/run_folder.py:"), deciders  # RunFolder.finished
     for asker in ("comparison/cell.py", "cli/train.py"):
         calls = [n for n in ast.walk(ast.parse((ROOT / asker).read_text()))
                  if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "finished"]

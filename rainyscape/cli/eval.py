@@ -41,7 +41,7 @@ def main(argv: list[str]) -> int:
         return print_help(COMMAND)
     folder, opts = run_dir(args, COMMAND), args.options
     from rainyscape.engine.run import load_run
-    from rainyscape.engine.run_dir import RunFolder
+    from rainyscape.engine.run_folder import RunFolder
     from rainyscape.eval.protocol import evaluate_pipeline, write_metrics
     from rainyscape.formats.output import check_writable
 

@@ -136,7 +136,7 @@ def _resume(run_dir: str, overrides: list[str], force: bool = False, method: str
     from pathlib import Path
 
     from rainyscape import config
-    from rainyscape.engine.run_dir import RunFolder
+    from rainyscape.engine.run_folder import RunFolder
     from rainyscape.errors import ConfigError
 
     folder = RunFolder.check(Path(run_dir).expanduser())

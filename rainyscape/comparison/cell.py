@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from rainyscape.comparison.matrix import Cell
-from rainyscape.engine.run_dir import RunFolder
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.errors import RainyScapeError
 
 

@@ -1,6 +1,6 @@
 """A training run in its folder: create or reopen one (locked, scene, pipeline and trainer
 built, checkpoint loaded), and rebuild a trained run for evaluation. The folder's layout and
-its questions are :class:`~rainyscape.engine.run_dir.RunFolder`'s."""
+its questions are :class:`~rainyscape.engine.run_folder.RunFolder`'s."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from rainyscape.config import PipelineConfig, with_run_length
 from rainyscape.engine.device import resolve_device
 from rainyscape.engine.lock import RunLock
 from rainyscape.engine.pipeline import Pipeline, build_pipeline
-from rainyscape.engine.run_dir import NewRunDir, RunFolder, check_output_dir, new_run_dir, reached_end
+from rainyscape.engine.run_folder import NewRunDir, RunFolder, check_output_dir, new_run_dir, reached_end
 from rainyscape.engine.scene_loading import load_scene
 from rainyscape.engine.trainer import Trainer, seed_everything
 from rainyscape.errors import ConfigError, DataError

@@ -28,7 +28,7 @@ from rainyscape.engine.loss_sum import compute_losses
 from rainyscape.engine.phases import PhaseSchedule
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.engine.progress import ProgressBar
-from rainyscape.engine.run_dir import RunFolder, fitting_the_run
+from rainyscape.engine.run_folder import RunFolder, fitting_the_run
 from rainyscape.engine.sampling import MAX_WHOLE_IMAGE_PIXELS, batch_count, gather_pixels, sample_windows
 from rainyscape.errors import DataError
 from rainyscape.imaging.metrics import psnr

@@ -20,7 +20,7 @@ from torch import Tensor
 from rainyscape.cameras import Window
 from rainyscape.components import HasEmbeddings
 from rainyscape.engine.pipeline import Pipeline
-from rainyscape.engine.run_dir import RunFolder
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.errors import ConfigError
 from rainyscape.eval.images import grid, save_png, to_uint8
 from rainyscape.eval.rain_stats import streak_angle_deg

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from rainyscape.components import MaskFusion
 from rainyscape.engine.pipeline import Pipeline
-from rainyscape.engine.run_dir import RunFolder
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.eval.images import save_strip
 from rainyscape.eval.metric_keys import (COVERAGE, LPIPS, PSNR, PSNR_DRY, PSNR_IN_RAIN, PSNR_VS_RAINY, RAIN_KEPT,
                                          RAIN_RECOVERED, SSIM, Measure, Metric, control, post, rainy_input,

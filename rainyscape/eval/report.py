@@ -10,7 +10,7 @@ import html
 import io
 from pathlib import Path
 
-from rainyscape.engine.run_dir import RunFolder
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.errors import RainyScapeError
 from rainyscape.eval.metric_keys import (ANGLE_ERROR, CORRELATION, IMAGE_MEASURES, LPIPS, RAIN_ANGLE, RAIN_KEPT,
                                          RAIN_RECOVERED, RESIDUAL_ANGLE, SPLITS, TRUE_ANGLE, Metric, post,

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from rainyscape.engine.pipeline import Pipeline
-from rainyscape.engine.run_dir import RunFolder
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.eval.camera_path import path_cameras
 from rainyscape.eval.images import depth_map, error_map, save_png, strip_panels, side_by_side, to_uint8
 from rainyscape.eval.views import progress, render_cameras, view_images
