@@ -1,5 +1,6 @@
 """Evaluation of a trained pipeline, one job a module:
 
+- ``metric_keys``: the one schema of every metric key (measures, which images and views);
 - ``views``: render a view, predict its rain tile by tile, the per-view image bundle
   (``ViewImages``), and ``quick_eval`` (the PSNR curves logged during training);
 - ``protocol``: per-view metrics, ``evaluate_pipeline``, ``write_metrics`` (``metrics.json``);
