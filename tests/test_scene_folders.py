@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -17,8 +16,11 @@ import torch
 from rainyscape.comparison.matrix import CLEAN_IMAGES, build_cells, cell_config, clean_views
 from rainyscape.comparison.options import BenchOptions
 from rainyscape.comparison.plan import plan_bench
+from rainyscape.cli import run_cli
 from rainyscape.cli.args import parse
 from rainyscape.cli.bench import COMMAND as BENCH
+from rainyscape.cli.bench import main as bench_main
+from rainyscape.cli.train import main as train_main
 from rainyscape.dataparsers.colmap import ColmapParser
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.metrics import psnr
@@ -71,17 +73,16 @@ def test_colmap_clean_images_are_undistorted_and_cropped_like_the_rainy_ones(tmp
 
 
 @pytest.mark.slow
-def test_rs_train_on_a_colmap_scene_scores_against_the_clean_photos(tmp_path, tiny_scene):
+def test_rs_train_on_a_colmap_scene_scores_against_the_clean_photos(tmp_path, tiny_scene, capsys):
     root = write_colmap(tiny_scene, tmp_path / "colmap")
     read = ColmapParser(ColmapParser.Config(clean="photos_clean")).parse(root)  # the scene as written
     assert torch.equal(read.clean_images, tiny_scene.clean_images) and torch.equal(read.images, tiny_scene.images)
     assert torch.allclose(read.cameras.c2w, tiny_scene.cameras.c2w, atol=1e-5)
     out = tmp_path / "out"
-    done = subprocess.run(["rs-train", "method=nerf", f"data={root}", "dataparser.clean=photos_clean",
-                           "trainer.max_iters=4", "trainer.eval_every=0", "trainer.final_eval_views=0",
-                           "trainer.progress=false",
-                           f"trainer.output_dir={out}", "trainer.device=cpu"], capture_output=True, text=True)
-    assert done.returncode == 0, done.stdout + done.stderr
+    code = run_cli(train_main, ["method=nerf", f"data={root}", "dataparser.clean=photos_clean",
+                                "trainer.max_iters=4", "trainer.eval_every=0", "trainer.final_eval_views=0",
+                                "trainer.progress=false", f"trainer.output_dir={out}", "trainer.device=cpu"])
+    assert code == 0, capsys.readouterr().err
     run = next(out.glob("*/*/*/metrics.json")).parent
     summary = json.loads((run / "metrics.json").read_text())["summary"]
     # the rainy training inputs against the clean photos (the same split: the same names, in order)
@@ -141,12 +142,11 @@ def test_auto_resolves_per_scene_for_simulated_and_folder_cells(renamed_clean):
 
 
 @pytest.mark.slow
-def test_rs_bench_trains_a_scene_folder_with_its_clean_folder(renamed_clean, tmp_path):
+def test_rs_bench_trains_a_scene_folder_with_its_clean_folder(renamed_clean, tmp_path, capsys):
     out = tmp_path / "results"
-    done = subprocess.run(["rs-bench", "methods=nerf", f"scenes={renamed_clean}", "dataparser.clean=images_clean",
-                           "iters=2", f"out={out}", "name=f", "device=cpu", "trainer.eval_every=0"],
-                          capture_output=True, text=True)
-    assert done.returncode == 0, done.stdout + done.stderr
+    code = run_cli(bench_main, ["methods=nerf", f"scenes={renamed_clean}", "dataparser.clean=images_clean",
+                                "iters=2", f"out={out}", "name=f", "device=cpu", "trainer.eval_every=0"])
+    assert code == 0, capsys.readouterr().err
     cells = json.loads((out / "f.json").read_text())["cells"]
     plain, ceiling = cells["tj/nerf"], cells["tj/nerf on clean views"]
     assert plain["status"] == ceiling["status"] == "finished"
