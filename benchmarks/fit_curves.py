@@ -1,7 +1,7 @@
 """PSNR against training time of the fields on real photographs (clean captures).
 
 Each run trains one method's CPU recipe (or N times its length, ``--length``) on a posed
-capture's clean photos, read at the real set's size (rainyscape/bench/captures.py), and
+capture's clean photos, read at the real set's size (rainyscape/comparison/captures.py), and
 measures PSNR on every training and held-out view at a few points of the run; the time axis is
 training time only (evaluation excluded), wall and CPU. Runs are separate processes, one after
 another, so their timings compare.
@@ -30,7 +30,7 @@ def run_one(capture: str, method: str, length: float, threads: int, overrides: l
     import numpy as np
     import torch
 
-    from rainyscape.bench.captures import benchmark_downscale, parse_capture
+    from rainyscape.comparison.captures import benchmark_downscale, parse_capture
     from rainyscape.cameras import Window
     from rainyscape.config import method_config, with_run_length
     from rainyscape.engine.pipeline import build_pipeline

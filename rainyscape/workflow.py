@@ -15,14 +15,13 @@ the protocol on every view.
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
 from typing import Callable
 
 from rainyscape.config import PipelineConfig
-from rainyscape.engine.run import Run, RunResult, open_run, recording_failures, write_status
+from rainyscape.engine.run import Run, RunResult, open_run
 from rainyscape.errors import warn
 from rainyscape.eval.report import POINTS_RECORD, points_line
 from rainyscape.scene import SceneData
@@ -91,10 +90,8 @@ def log_points(run: Run) -> None:
         return
     record = points_record(cfg, run.pipeline.scene)
     print(f"sparse points: {points_line(record)}", file=sys.stderr)
-    log = run.run_dir / "log.jsonl"
-    if run.trainer.step == 0 and not (log.is_file() and f'"{POINTS_RECORD}"' in log.read_text()):
-        with open(log, "a") as fh:
-            fh.write(json.dumps({"step": 0, POINTS_RECORD: record}) + "\n")
+    if run.trainer.step == 0 and not any(POINTS_RECORD in r for r in run.folder.log_records()):
+        run.folder.append_log({"step": 0, POINTS_RECORD: record})
 
 
 def final_evaluation(run: Run) -> dict:
@@ -127,13 +124,13 @@ def train_and_evaluate(cfg: PipelineConfig, run_dir: Path | None = None) -> RunR
                   evaluator=lambda pipeline: quick_eval(pipeline, cfg.trainer.eval_views),
                   prepare_scene=sparse_points_step(cfg)) as run:
         log_points(run)
-        with recording_failures(run.run_dir):
+        with run.folder.recording_failures():
             run.trainer.train()
-            if run.finished:
+            if run.trained:
                 metrics = final_evaluation(run)
                 metrics["step"] = run.trainer.step
-                write_status(run.run_dir, "finished", step=run.trainer.step)  # before the report shows it
+                run.folder.set_status("finished", step=run.trainer.step)  # before the report shows it
                 write_metrics(run.run_dir, metrics)
             else:
-                write_status(run.run_dir, "stopped", step=run.trainer.step)
+                run.folder.set_status("stopped", step=run.trainer.step)
     return RunResult(run.run_dir, metrics)

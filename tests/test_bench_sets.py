@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import pytest
 
-from rainyscape.bench.matrix import has_clean_views
-from rainyscape.bench.options import BenchOptions
-from rainyscape.bench.plan import plan_bench
-from rainyscape.bench.sets import SCENE_SETS, scene_set
+from rainyscape.comparison.matrix import has_clean_views
+from rainyscape.comparison.options import BenchOptions
+from rainyscape.comparison.plan import plan_bench
+from rainyscape.comparison.sets import SCENE_SETS, scene_set
 from rainyscape.errors import ConfigError
 from rainyscape.synth.presets import PRESETS
 

@@ -1,5 +1,5 @@
 """Rain added to a capture in its own cameras (synth/capture_rain.py) and the real-capture
-benchmark scenes made from it (bench/captures.py)."""
+benchmark scenes made from it (comparison/captures.py)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from rainyscape.bench.captures import Capture, benchmark_downscale, parse_capture, rainy_scene
-from rainyscape.bench.matrix import clean_overrides, has_clean_views
+from rainyscape.comparison.captures import Capture, benchmark_downscale, parse_capture, rainy_scene
+from rainyscape.comparison.matrix import clean_overrides, has_clean_views
 from rainyscape.dataparsers.transforms_json import TransformsJsonConfig, TransformsJsonParser
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.angles import angle_difference_deg, estimate_rain_angles, streak_angle
@@ -117,7 +117,7 @@ def test_a_real_capture_becomes_a_cached_rainy_benchmark_scene(tmp_path):
 
 
 def test_real_set_needs_a_captures_folder(tmp_path, monkeypatch):
-    from rainyscape.bench.captures import captures_root
+    from rainyscape.comparison.captures import captures_root
 
     monkeypatch.delenv("RAINYSCAPE_CAPTURES", raising=False)
     with pytest.raises(ConfigError, match="captures=.*no such folder"):
@@ -128,8 +128,8 @@ def test_real_set_needs_a_captures_folder(tmp_path, monkeypatch):
 
 @pytest.mark.skipif(FERN is None, reason="the real captures (../shared/data/real) are not here")
 def test_rs_bench_real_set_plans_every_strength_of_every_capture(tmp_path):
-    from rainyscape.bench.options import BenchOptions
-    from rainyscape.bench.plan import plan_bench
+    from rainyscape.comparison.options import BenchOptions
+    from rainyscape.comparison.plan import plan_bench
 
     (tmp_path / "caps").mkdir()
     (tmp_path / "caps" / "fern").symlink_to(FERN)

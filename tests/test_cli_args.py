@@ -119,7 +119,7 @@ FREE_TEXT = {
     "paths": {"out", "data", "resume", "output_dir", "holdout_file", "images", "clean", "sparse", "cameras", "captures",
               "depth", "rain", "transforms", "vocab_tree"},
     "names the registry, a scene or a scene set checks": {
-        "method", "methods", "scenes", "ceiling", "ablation", "ablation_method", "views", "name", "heads",
+        "method", "methods", "dataparser", "scenes", "ceiling", "ablation", "ablation_method", "views", "name", "heads",
         "phases", "detach", "depth_key"},
 }
 # Numeric options of other areas' components (fields, rain heads, losses) that have no range

@@ -33,7 +33,8 @@ from _plugins import install_toy_plugin
 from rainyscape import config, registry
 from rainyscape.cli import run_cli
 from rainyscape.engine.checkpoint import list_checkpoints, load_checkpoint
-from rainyscape.engine.run import load_run, read_status
+from rainyscape.engine.run import load_run
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.errors import RainyScapeError
 from rainyscape.workflow import train_and_evaluate
 
@@ -163,7 +164,7 @@ def test_a_crafted_checkpoint_is_refused_without_running_its_code(reference_run,
 def test_a_truncated_newest_checkpoint_falls_back_and_resume_matches(reference_run, tiny_scene_dir,
                                                                       tmp_path, capsys):
     run = _train(tiny_scene_dir, tmp_path, "trainer.stop_at=20")
-    assert read_status(run)["state"] == "stopped"
+    assert RunFolder(run).status()["state"] == "stopped"
     newest = run / "checkpoints" / "step-0000020.pt"
     data = newest.read_bytes()
     newest.write_bytes(data[: len(data) // 3])
@@ -173,7 +174,7 @@ def test_a_truncated_newest_checkpoint_falls_back_and_resume_matches(reference_r
     # set aside for inspection, not deleted
     assert (run / "checkpoints" / "step-0000020.pt.corrupt").read_bytes() == data[: len(data) // 3]
     assert _logged_steps(run) == list(range(1, ITERS + 1))  # the log was cut back to step 10
-    assert read_status(run)["state"] == "finished"
+    assert RunFolder(run).status()["state"] == "finished"
     _same_params(reference_run, run)
 
 
@@ -223,13 +224,13 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(when, reference_run, to
     assert proc.returncode == -signal.SIGKILL
     assert [p.name for p in list_checkpoints(run / "checkpoints")][-1] in ("step-0000010.pt", "step-0000020.pt")
     # the killed process left "running"; nobody holds the folder, so it reads as interrupted
-    status = read_status(run)
+    status = RunFolder(run).status()
     assert status["state"] == "interrupted" and str(proc.pid) in status["note"]
     code, err = _cli(capsys, "train", f"resume={run}")
     assert code == 0, err
     assert not list((run / "checkpoints").glob("*.tmp"))
     assert _logged_steps(run) == list(range(1, ITERS + 1))  # no step logged twice
-    assert read_status(run)["state"] == "finished"
+    assert RunFolder(run).status()["state"] == "finished"
     _same_params(reference_run, run)
 
 
@@ -260,7 +261,7 @@ def test_a_second_resume_of_a_busy_run_is_refused_naming_the_holder(toy_env, tin
     assert code == 2 and "in use by rs-train" in line and f"pid {first.pid}" in line
     assert first.wait(timeout=300) == 0, first.stderr.read()
     assert _logged_steps(run) == list(range(1, ITERS + 1))  # every step once
-    assert read_status(run)["state"] == "finished"
+    assert RunFolder(run).status()["state"] == "finished"
     # a finished run is not re-evaluated silently
     metrics = (run / "metrics.json").read_bytes()
     code, err = _cli(capsys, "train", f"resume={run}")
@@ -598,7 +599,7 @@ def _user_folder(folder: Path) -> dict[str, bytes]:
 
 
 def test_case1_rs_bench_writes_only_its_own_files(toy_env, tiny_scene_dir, tmp_path, capsys):
-    from rainyscape.bench.output import BenchOutput, check_output, is_results_file, start_afresh
+    from rainyscape.comparison.output import BenchOutput, check_output, is_results_file, start_afresh
 
     d = tmp_path / "d"
     before = _user_folder(d)
@@ -636,7 +637,7 @@ def test_case2_a_failed_resume_leaves_the_run_as_it_was(reference_run, tmp_path,
     code, err = _cli(capsys, "train", f"resume={run}", "trainer.max_iters=42")
     assert code == 2 and "does not fit" in _one_error_line(err)
     assert _snapshot(run) == before  # config.yml, status.json, the log: byte for byte
-    assert read_status(run)["state"] == "finished"
+    assert RunFolder(run).status()["state"] == "finished"
 
 
 def test_case3_and_4_rs_synth_replaces_a_whole_scene_or_nothing(tmp_path, capsys, monkeypatch):

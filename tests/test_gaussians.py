@@ -15,11 +15,12 @@ import torch
 from rainyscape.cameras import Window
 from rainyscape.components import LossContext, RenderOutput, TrainState
 from rainyscape.config import method_config
-from rainyscape.engine.pipeline import build_pipeline, compute_losses
+from rainyscape.engine.loss_sum import compute_losses
+from rainyscape.engine.pipeline import build_pipeline
 from rainyscape.errors import ConfigError
 from rainyscape.fields.gaussians.densify import DensifySchedule
-from rainyscape.fields.gaussians.ops import replace_params
 from rainyscape.fields.gaussians.field import GaussianField, growth_cap
+from rainyscape.fields.gaussians.ops import replace_params
 from rainyscape.fields.gaussians.ply import read_ply
 from rainyscape.fields.gaussians.sh import SH_C0, sh_basis, sh_to_rgb
 from rainyscape.losses.l1_ssim import L1SSIM

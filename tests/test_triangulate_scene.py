@@ -108,7 +108,7 @@ def _train(fern_dir: Path, out: Path, *extra: str):
 def _points_record(run: Path) -> dict:
     from rainyscape.eval.report import read_points_record
 
-    record = read_points_record(run / "log.jsonl")
+    record = read_points_record(run)
     assert record is not None
     return record
 
@@ -124,7 +124,7 @@ def test_a_3dgs_run_starts_from_triangulated_points_and_says_so(fern_dir, cache,
     held = len(range(7, FERN_VIEWS, 8))  # the default split holds out every 8th view
     assert tri["views"] == FERN_VIEWS - held and tri["points"] == record["points"]
     assert f"sparse points: {record['points']}, {SOURCE}" in capsys.readouterr().err
-    train, _ = read_log(run / "log.jsonl")
+    train, _ = read_log(run)
     assert train and all("loss" in r for r in train)  # the record is not a training step
     assert "Initial sparse points: " + str(record["points"]) in (run / "report.html").read_text()
 
@@ -148,8 +148,8 @@ def test_ground_truth_depth_starts_nothing_unless_asked(tiny_scene_dir):
 
 
 def test_rs_bench_refuses_ground_truth_depth_points():
-    from rainyscape.bench.options import BenchOptions
-    from rainyscape.bench.plan import plan_bench
+    from rainyscape.comparison.options import BenchOptions
+    from rainyscape.comparison.plan import plan_bench
     from rainyscape.errors import ConfigError
 
     with pytest.raises(ConfigError, match="points_from_depth=true starts 3DGS from the simulator's ground-truth"):

@@ -201,9 +201,9 @@ def run_dir(args: Args, command: Command) -> Path:
     if len(args.positional) != 1:
         raise ConfigError(f"{command.name}: expected one RUN_DIR (a folder made by rs-train), "
                           f"got {len(args.positional)} positional arguments; see {command.name} --help")
-    from rainyscape.engine.run_dir import check_run_folder  # light: no torch
+    from rainyscape.engine.run_folder import RunFolder  # light: no torch
 
-    return check_run_folder(Path(args.positional[0]).expanduser())
+    return RunFolder.check(Path(args.positional[0]).expanduser()).path
 
 
 # --------------------------------------------------------------------------------- help

@@ -41,6 +41,7 @@ def main(argv: list[str]) -> int:
         return print_help(COMMAND)
     folder, opts = run_dir(args, COMMAND), args.options
     from rainyscape.engine.run import load_run
+    from rainyscape.engine.run_folder import RunFolder
     from rainyscape.eval.protocol import evaluate_pipeline, write_metrics
     from rainyscape.formats.output import check_writable
 
@@ -56,7 +57,8 @@ def main(argv: list[str]) -> int:
     print_summary(metrics["summary"])
     if not metrics["lpips"]["available"]:
         print(f"  lpips: unavailable ({metrics['lpips']['reason']})")
-    print(f"wrote {folder / 'metrics.json'} and {folder / 'report.html'}")
+    written = RunFolder(folder)
+    print(f"wrote {written.metrics_file} and {written.report_file}")
     return 0
 
 

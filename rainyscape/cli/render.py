@@ -60,7 +60,7 @@ def main(argv: list[str]) -> int:
                                     seed=opts.seed)
         print(f"wrote {out} and {out.with_suffix('.json')}")
     else:
-        from rainyscape.eval.render import RenderOptions, render_run
+        from rainyscape.eval.run_renders import RenderOptions, render_run
 
         result = render_run(pipeline, folder, RenderOptions(opts.views, opts.video, opts.path,
                                                             opts.frames, opts.fps))

@@ -136,11 +136,11 @@ def _resume(run_dir: str, overrides: list[str], force: bool = False, method: str
     from pathlib import Path
 
     from rainyscape import config
-    from rainyscape.engine.run import read_status
-    from rainyscape.engine.run_dir import CONFIG_FILE, check_run_folder
+    from rainyscape.engine.run_folder import RunFolder
     from rainyscape.errors import ConfigError
 
-    path = check_run_folder(Path(run_dir).expanduser())
+    folder = RunFolder.check(Path(run_dir).expanduser())
+    path = folder.path
     bad = [o for o in overrides if not o.startswith("trainer.") and not o.startswith("data=")]
     if bad:
         raise ConfigError(f"resume accepts only trainer.* and data= overrides, got '{bad[0]}'")
@@ -149,16 +149,15 @@ def _resume(run_dir: str, overrides: list[str], force: bool = False, method: str
         key = fixed[0].split("=", 1)[0]
         raise ConfigError(f"{key}: cannot change on resume ({FIXED_ON_RESUME[key]}); start a new run "
                           f"with method=... instead")
-    cfg = config.load_yaml(path / CONFIG_FILE)
+    cfg = folder.config()
     if method and method != cfg.method:
         raise ConfigError(f"method={method}: {path} is a run of {cfg.method}; a resume continues it "
                           f"(drop method=, or start a new run without resume=)")
     cfg = config.apply_overrides(cfg, config.parse_overrides(overrides))
-    status = read_status(path)
-    if status.get("state") == "finished" and int(status.get("step", 0)) >= cfg.trainer.max_iters:
+    if folder.finished(cfg.trainer.max_iters):
         if not force:
             raise ConfigError(
-                f"{path}: finished (step {status.get('step')} of {cfg.trainer.max_iters}); resuming would "
+                f"{path}: finished (step {folder.status().get('step')} of {cfg.trainer.max_iters}); resuming would "
                 f"only evaluate it again and replace metrics.json and report.html. rs-eval {path} "
                 f"does that; raise trainer.max_iters to train longer, or pass force=true")
         print(f"{path}: finished; evaluating it again (force=true)", file=sys.stderr)

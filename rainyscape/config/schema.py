@@ -426,3 +426,10 @@ def with_run_length(cfg: PipelineConfig, train_views: int) -> PipelineConfig:
 
 def is_materialized(cfg: PipelineConfig) -> bool:
     return is_dataclass(cfg.field.options) and is_dataclass(cfg.dataparser.options)
+
+
+def require_typed(cfg: PipelineConfig, what: str) -> None:
+    """TypeError unless ``cfg`` is typed (a programming error: configs come from method_config
+    or load_yaml)."""
+    if not is_materialized(cfg):
+        raise TypeError(f"{what} needs a typed config (from method_config or load_yaml)")

@@ -14,6 +14,7 @@ from torch import Tensor
 from rainyscape.cameras import Cameras, Window
 from rainyscape.components import RenderOutput
 from rainyscape.engine.pipeline import Pipeline
+from rainyscape.eval.metric_keys import quick_key
 from rainyscape.eval.summary import mean_of
 from rainyscape.imaging.metrics import psnr
 
@@ -128,8 +129,8 @@ def view_images(pipeline: Pipeline, index: int) -> ViewImages:
 @torch.no_grad()
 def quick_eval(pipeline: Pipeline, views: int) -> dict:
     """PSNR of the first ``views`` training and held-out renders vs the rainy and the clean
-    images (the paper's Fig. 2 curves): ``{train,heldout}_psnr_{rainy,clean}``, the clean
-    ones only when the scene has clean images, a split without views left out."""
+    images (the paper's Fig. 2 curves), under :func:`quick_key`: the clean ones only when the
+    scene has clean images, a split without views left out."""
     scene, dev = pipeline.scene, pipeline.device
     out: dict[str, float] = {}
     for split, indices in (("train", scene.train_indices), ("heldout", scene.eval_indices)):
@@ -142,7 +143,7 @@ def quick_eval(pipeline: Pipeline, views: int) -> dict:
             rainy_vals.append(float(psnr(rgb, to_float(scene.images[i], dev))))
             if scene.clean_images is not None:
                 clean_vals.append(float(psnr(rgb, to_float(scene.clean_images[i], dev))))
-        out[f"{split}_psnr_rainy"] = mean_of(rainy_vals)
+        out[quick_key(split, "rainy")] = mean_of(rainy_vals)
         if clean_vals:
-            out[f"{split}_psnr_clean"] = mean_of(clean_vals)
+            out[quick_key(split, "clean")] = mean_of(clean_vals)
     return out

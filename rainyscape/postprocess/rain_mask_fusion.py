@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from rainyscape.components import PostProcess
+from rainyscape.components import FusionControl, PostProcess
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 
@@ -33,6 +33,15 @@ def fuse(rendered: Tensor, rainy: Tensor, mask: Tensor) -> Tensor:
     return torch.where(mask, rendered, rainy)
 
 
+def random_mask_like(mask: Tensor, seed: int) -> Tensor:
+    """A boolean mask of ``mask``'s shape with exactly as many pixels set, placed uniformly at
+    random (``torch.randperm`` with ``seed``: the same seed gives the same mask anywhere)."""
+    n, k = mask.numel(), int(mask.sum())
+    flat = torch.zeros(n, dtype=torch.bool)
+    flat[torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:k]] = True
+    return flat.view(mask.shape).to(mask.device)
+
+
 class RainMaskFusion(PostProcess):
     """Keep rendered pixels where rain is predicted and input pixels elsewhere."""
 
@@ -50,6 +59,15 @@ class RainMaskFusion(PostProcess):
         if self.config.dilation < 0:
             raise ConfigError(f"postprocess dilation must be >= 0, got {self.config.dilation}")
 
+    def mask(self, rain: Tensor) -> Tensor:
+        return rain_mask(rain, self.config.threshold, self.config.dilation)
+
     def __call__(self, rendered: Tensor, rain: Tensor, rainy: Tensor) -> Tensor:
-        mask = rain_mask(rain, self.config.threshold, self.config.dilation)
-        return fuse(rendered, rainy, mask)
+        return fuse(rendered, rainy, self.mask(rain))
+
+    def control(self, rendered: Tensor, rain: Tensor, rainy: Tensor, seed: int) -> FusionControl:
+        """:class:`rainyscape.components.MaskFusion`: the mask's coverage, and the fusion under
+        a random mask of that coverage."""
+        mask = self.mask(rain)
+        return FusionControl(float(mask.float().mean()),
+                             fuse(rendered, rainy, random_mask_like(mask, seed)).clamp(0, 1))

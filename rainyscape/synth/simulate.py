@@ -20,7 +20,7 @@ from rainyscape.synth import layout
 from rainyscape.synth.presets import PRESETS
 from rainyscape.synth.params import SIM_VERSION, RainConfig
 from rainyscape.synth.rain import make_drop_field, render_rain
-from rainyscape.synth.render import EDGE_FACTOR, SceneRenderer, ViewRender, default_samples
+from rainyscape.synth.raycast import EDGE_FACTOR, SceneRenderer, ViewRender, default_samples
 from rainyscape.synth.rig import make_rig
 from rainyscape.synth.scenes import build_scene
 

@@ -39,10 +39,6 @@ class Budget:
     width: int = 0  # the image size whole-view phases were counted at
     height: int = 0
 
-    @property
-    def total_pixels(self) -> float:
-        return self.steps * self.pixels_per_step
-
     def short(self) -> str:
         """``1500 × 1024``: steps × mean pixels per step."""
         return f"{self.steps} × {self.pixels_per_step:.0f}"

@@ -11,7 +11,7 @@ light, medium, heavy, slanted by wind, and two directions at once.
   ``jobs=2 threads=1`` (the measurement behind it: docs/evaluation.md, "Sizing the cpu set").
 - ``paper``: the paper's array (5 x 10 views) at 512 px and its step counts (18k NeRF steps,
   30k for 3DGS): a GPU run.
-- ``real``: real photographs with the simulator's rain in their own cameras (bench/captures.py):
+- ``real``: real photographs with the simulator's rain in their own cameras (comparison/captures.py):
   every capture of the captures folder at about 240 px, at light, medium and heavy strength; the
   photos are the ground truth.
 """
@@ -36,7 +36,7 @@ class SceneSet:
     cols: int
     iters: dict[str, int] = field(default_factory=dict)  # field family -> trainer.max_iters
     description: str = ""
-    captures: bool = False  # scenes made from real captures (bench/captures.py), not presets
+    captures: bool = False  # scenes made from real captures (comparison/captures.py), not presets
 
 
 SCENE_SETS: dict[str, SceneSet] = {s.name: s for s in [

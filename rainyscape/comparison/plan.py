@@ -8,11 +8,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
-from rainyscape.bench.budget import Budget, Mismatch, cell_budget, check_budgets
-from rainyscape.bench.matrix import Cell, build_cells, cell_config, validate_cells
-from rainyscape.bench.options import BenchOptions
-from rainyscape.bench.scenes import ScenePlan, plan_scene
-from rainyscape.bench.sets import scene_set
+from rainyscape.comparison.budget import Budget, Mismatch, cell_budget, check_budgets
+from rainyscape.comparison.matrix import SIMULATED_FORMAT, Cell, build_cells, cell_config, validate_cells
+from rainyscape.comparison.options import BenchOptions
+from rainyscape.comparison.scenes import ScenePlan, plan_scene
+from rainyscape.comparison.sets import scene_set
 from rainyscape.config.overrides import uses_cuda
 from rainyscape.config.schema import check_range
 from rainyscape.errors import ConfigError
@@ -102,15 +102,15 @@ def scene_shape(plan: ScenePlan, cfg) -> tuple[int, int, int]:
         factor = max(1, int(getattr(options, "downscale", 1) or 1))
         train, _ = split_indices(plan.rows * plan.cols, getattr(options, "holdout_every", 8))
         return plan.width // factor, plan.height // factor, len(train)
-    from rainyscape.engine.pipeline import load_scene
+    from rainyscape.engine.scene_loading import load_scene
 
     scene = load_scene(cfg, Path(plan.folder))
     if scene.clean_images is None:  # every cell would score n/a, and say nothing
         raise ConfigError(
             f"{plan.folder}: the {scene.metadata.get('dataparser', cfg.dataparser.name)} parser finds no "
-            "clean images there, and rs-bench scores every cell against them; put them beside the rainy "
-            "images as a '_wo_rain' sibling folder (images_rain/ -> images_wo_rain/), or train it with "
-            "rs-train, which takes dataparser.clean=FOLDER")
+            "clean images there, and rs-bench scores every cell against them; name their folder with "
+            "dataparser.clean=FOLDER, or put them beside the rainy images as a '_wo_rain' sibling "
+            "(images_rain/ -> images_wo_rain/)")
     return scene.width, scene.height, len(scene.train_indices)
 
 
@@ -154,19 +154,24 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
     # A table measures every view: the cells evaluate every view at the end of their run.
     base = [f"profile={profile}", "trainer.final_eval_views=0"]
     base += fixed_length(opts.iters) if opts.iters else []
+    base += [f"dataparser={opts.dataparser}"] if opts.dataparser != "auto" else []
     every = list(dict.fromkeys(methods + ([opts.ablation_method] if opts.ablation else [])))
     overrides, own = split_method_overrides(overrides, every)
-    # Every method and override must be valid before any scene is simulated or cell trained.
-    validate_cells(build_cells(methods, [("", "")], base + overrides,
-                               ("", "") if opts.ablation else None, opts.ablation_method, own))
-    per_method = family_iters(every, base + overrides, sset.iters) if sset and not opts.iters else {}
+    # Every method and override must be valid before any scene is simulated or cell trained;
+    # the dataparser's options are checked with each scene's cells (plan_budgets), as only a
+    # scene tells which parser reads it.
+    generic = [o for o in base + overrides if not o.startswith("dataparser")]
+    validate_cells(build_cells(methods, [("", "")], generic, ("", "") if opts.ablation else None,
+                               opts.ablation_method, {m: [o for o in v if not o.startswith("dataparser")]
+                                                      for m, v in own.items()}))
+    per_method = family_iters(every, generic, sset.iters) if sset and not opts.iters else {}
     per_method = {m: per_method.get(m, []) + own.get(m, []) for m in every}
     size = dict(width=opts.scene_width or (sset.width if sset else 0),
                 height=opts.scene_height or (sset.height if sset and not opts.scene_width else 0),
                 rows=opts.scene_rows or (sset.rows if sset else 0), cols=opts.scene_cols or (sset.cols if sset else 0))
     specs = list(sset.presets) if sset else [s.strip() for s in opts.scenes.split(",") if s.strip()]
     if sset and sset.captures:  # made (once, cached) now: their sizes come from the folders
-        from rainyscape.bench.captures import real_scenes
+        from rainyscape.comparison.captures import real_scenes
 
         planned = [ScenePlan(label, folder=str(folder))
                    for label, folder in real_scenes(opts.captures, Path(opts.out) / "scenes")]
@@ -175,6 +180,11 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
             raise ConfigError("rs-bench: scenes= lists no scene")
         planned = [plan_scene(s, **size) for s in specs]
     scenes = list({p.label: p for p in planned}.values())
+    simulated = [p.label for p in scenes if not p.folder]
+    if opts.dataparser not in ("auto", SIMULATED_FORMAT) and simulated:
+        raise ConfigError(f"rs-bench: dataparser={opts.dataparser}: {', '.join(simulated)} "
+                          f"{'is' if len(simulated) == 1 else 'are'} simulated in the {SIMULATED_FORMAT} "
+                          "layout; dataparser= names the parser of scene folders")
     plan = BenchPlan(methods, scenes, plan_scene(opts.ablation, **size) if opts.ablation else None,
                      opts.ablation_method, base + overrides, per_method, sset.name if sset else None,
                      ceiling_methods(opts.ceiling, methods))

@@ -65,8 +65,9 @@ def scene_oracle(folder: str, cfg) -> dict:
     import torch
     import torch.nn.functional as F
 
-    from rainyscape.engine.pipeline import load_scene
+    from rainyscape.engine.scene_loading import load_scene
     from rainyscape.errors import RainyScapeError
+    from rainyscape.eval.metric_keys import PSNR, SSIM
     from rainyscape.imaging.metrics import psnr, ssim
     from rainyscape.synth.oracle import rerender_clean
 
@@ -80,7 +81,7 @@ def scene_oracle(folder: str, cfg) -> dict:
     out = {**entry, "available": True, "views": {}}
     try:
         for split, indices in (("train", scene.train_indices), ("heldout", scene.eval_indices)):
-            values = {"psnr": [], "ssim": []}
+            values = {PSNR.name: [], SSIM.name: []}
             for i in indices:
                 img = rerender_clean(path, _view_index(scene.image_names[i], i), samples=ORACLE_SAMPLES)
                 pred = torch.from_numpy(img.astype("float32")).permute(2, 0, 1).clamp(0, 1)
@@ -88,8 +89,8 @@ def scene_oracle(folder: str, cfg) -> dict:
                 if pred.shape != clean.shape:  # the dataparser downscaled the views: do the same
                     factor = pred.shape[-1] // clean.shape[-1]
                     pred = F.avg_pool2d(pred[None, :, :clean.shape[1] * factor, :clean.shape[2] * factor], factor)[0]
-                values["psnr"].append(float(psnr(pred, clean)))
-                values["ssim"].append(float(ssim(pred[None], clean[None])))
+                values[PSNR.name].append(float(psnr(pred, clean)))
+                values[SSIM.name].append(float(ssim(pred[None], clean[None])))
             if indices:
                 out[split] = {k: sum(v) / len(v) for k, v in values.items()}
             out["views"][split] = len(indices)

@@ -10,16 +10,17 @@ import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from pathlib import Path
 
-from rainyscape.bench.cell import run_cell_subprocess
-from rainyscape.bench.matrix import Cell, cell_config
-from rainyscape.bench.options import BenchOptions
-from rainyscape.bench.oracle import cached_oracle, na_entry, scene_oracle, unavailable
-from rainyscape.bench.output import BenchOutput, check_name, check_output, start_afresh
-from rainyscape.bench.plan import plan_bench
-from rainyscape.bench.results import load_results, machine_description, save_results
-from rainyscape.bench.scenes import cache_folder, resolve_scene
-from rainyscape.bench.tables import markdown_report
+from rainyscape.comparison.cell import run_cell_subprocess
+from rainyscape.comparison.matrix import Cell, cell_config
+from rainyscape.comparison.options import BenchOptions
+from rainyscape.comparison.oracle import cached_oracle, na_entry, scene_oracle, unavailable
+from rainyscape.comparison.output import BenchOutput, check_name, check_output, start_afresh
+from rainyscape.comparison.plan import plan_bench
+from rainyscape.comparison.results import load_results, machine_description, save_results
+from rainyscape.comparison.scenes import cache_folder, resolve_scene
+from rainyscape.comparison.tables import markdown_report
 from rainyscape.engine.lock import RunLock
+from rainyscape.eval.metric_keys import PSNR, SSIM, render
 from rainyscape.formats.atomic import write_text_atomic
 from rainyscape.formats.output import make_folders, os_error, remove_made
 
@@ -54,8 +55,9 @@ def update_oracles(cells: list[Cell], results: dict, jobs: int, save) -> None:
     for label in dict.fromkeys(c.scene for c in cells):
         entry = oracle[label]
         if entry.get("available"):
-            print(f"oracle 3D on {label}: training views {entry['train']['psnr']:.2f} dB"
-                  + (f", held-out {entry['heldout']['psnr']:.2f} dB" if "heldout" in entry else ""), flush=True)
+            print(f"oracle 3D on {label}: training views {PSNR.text(entry['train'][PSNR.name])}"
+                  + (f", held-out {PSNR.text(entry['heldout'][PSNR.name])}" if "heldout" in entry else ""),
+                  flush=True)
         else:
             print(f"oracle 3D on {label}: n/a ({entry.get('reason')})", flush=True)
 
@@ -67,7 +69,7 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
     checked, every cell's config is built, and its budget computed and checked (methods of one
     field family on one scene must train the same steps on the same mean pixels per step,
     unless ``allow_unequal``); then what the benchmark would write over in ``out=`` must be
-    its own (:mod:`rainyscape.bench.output`), and the benchmark's lock free."""
+    its own (:mod:`rainyscape.comparison.output`), and the benchmark's lock free."""
     plan = plan_bench(opts, overrides)
     target = BenchOutput(Path(opts.out).expanduser(), check_name(opts.name or time.strftime("%Y-%m-%d")))
     cache = target.scenes
@@ -135,8 +137,8 @@ def _run_locked(opts: BenchOptions, plan, target: BenchOutput, command: str) -> 
             write_text_atomic(md_path, markdown_report(cells, results))
             if result["status"] == "finished":
                 s = result["summary"]
-                print(f"[{n}/{len(cells)}] {cell.key}: PSNR {_db(s.get('train_psnr'))}, "
-                      f"SSIM {_num(s.get('train_ssim'))} ({result['how']}, {result['wall_s']:.0f} s)",
+                print(f"[{n}/{len(cells)}] {cell.key}: PSNR {PSNR.text(render(PSNR).of(s))}, "
+                      f"SSIM {SSIM.format(render(SSIM).of(s))} ({result['how']}, {result['wall_s']:.0f} s)",
                       flush=True)
             else:
                 failed += 1
@@ -146,10 +148,3 @@ def _run_locked(opts: BenchOptions, plan, target: BenchOutput, command: str) -> 
     write_text_atomic(md_path, markdown_report(cells, results))
     return json_path, md_path, failed
 
-
-def _db(value) -> str:
-    return f"{value:.2f} dB" if isinstance(value, (int, float)) else "n/a"
-
-
-def _num(value) -> str:
-    return f"{value:.3f}" if isinstance(value, (int, float)) else "n/a"

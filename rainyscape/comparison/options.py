@@ -19,6 +19,9 @@ class BenchOptions:
     captures: str = field(default="", metadata={"help": "scenes=real: a folder of real captures (posed "
                                                          "scenes or photo folders; default "
                                                          "$RAINYSCAPE_CAPTURES, else ../shared/data/real)"})
+    dataparser: str = field(default="auto", metadata={"help": "the parser of every scene folder (auto: each "
+                                                              "scene's own format, detected per scene); "
+                                                              "its options: dataparser.KEY=value"})
     iters: int = field(default=0, metadata={"help": "trainer.max_iters of every cell (0: the scene set's "
                                                     "budget per field, else each method's own)",
                                             "min": 0, "max": 10_000_000})
@@ -29,7 +32,7 @@ class BenchOptions:
     device: str = field(default="auto", metadata={"help": "the cells' device", "choices": DEVICES})
     profile: str = field(default="auto", metadata={"help": "every method's recipe (auto: gpu when the cells "
                                                            "train on CUDA)", "choices": ("auto", *PROFILES)})
-    ceiling: str = field(default="auto", metadata={"help": "methods also trained on each simulated scene's "
+    ceiling: str = field(default="auto", metadata={"help": "methods also trained on each scene's "
                                                            "clean views, at the same budget: the field's "
                                                            "ceiling (auto: nerf and 3dgs where listed; "
                                                            "none: no such rows)"})
