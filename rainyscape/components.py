@@ -163,6 +163,9 @@ class LossContext:
     step: int
     phase: str
     window: Window | None = None  # which pixels of the views the batch holds
+    # False while a head's latent update evaluates the loss as its energy (on a crop): terms
+    # then leave what they record (metrics, estimated angles) to the network update's call
+    record: bool = True
 
     @property
     def rain(self) -> Tensor | None:

@@ -430,12 +430,28 @@ def test_rainyscape_3dgs_trains_whole_views_and_updates_latents_on_a_crop(tiny_s
         return predict(view_ids, window)
 
     pipe.rain_head.forward = recording_forward
+    agr = pipe.losses["agr"][1]
+    recorded, estimate = [], agr.estimate
+
+    def recording_estimate(ctx):
+        theta, valid = estimate(ctx)
+        recorded.append((ctx.record, ctx.rendered.shape[-1], torch.rad2deg(theta)))
+        return theta, valid
+
+    agr.estimate = recording_estimate
     views = pipe.rain_head.view_states.detach().clone()
     trainer.train()
     size = (tiny_scene.width, tiny_scene.height)
     # 9 joint steps: one whole-view prediction, then 5 latent steps on 16 x 16 crops each
     assert seen == [size, *[(16, 16)] * 5] * 9
     assert not torch.equal(pipe.rain_head.view_states.detach(), views)
+    # the latent updates evaluate AGR on crops without recording: the logged angles are the
+    # network update's, on the whole view (issue 28: they were the last crop's)
+    assert [(r, w) for r, w, _ in recorded] == [(True, tiny_scene.width), *[(False, 16)] * 5] * 9
+    last_update = [deg for r, _, deg in recorded if r][-1]
+    logged = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    streak = [v for k, v in logged[-1].get("metrics", {}).items() if k.startswith("agr.streak_deg")]
+    assert streak and abs(streak[0] - float((last_update[0, 0] + 90) % 180)) < 1e-3
 
 
 def test_rainyscape_plus_is_rainyscape_3dgs_with_multiview_rain_and_capped_tv():

@@ -128,6 +128,8 @@ class Trainer:
         ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window)
         terms = self.pipeline.loss_terms(name)
         total, values = compute_losses(terms, ctx)
+        # what the terms measured on this batch (the latent updates below evaluate them again)
+        measured = {f"{key}.{mk}": mv for key, (_, term) in terms.items() for mk, mv in term.metrics.items()}
         # the field's own losses fit what the layers leave of the input
         field_target = target if not layers else (target - sum(layers.values())).detach()
         for key, value in self.pipeline.field.extra_losses(out, field_target).items():
@@ -150,15 +152,14 @@ class Trainer:
         fit = out.rgb.detach() + sum(v.detach() for v in layers.values())
         record = {"step": self.step, "phase": name, "loss": float(total.detach()), "terms": values,
                   "psnr_input": float(psnr(fit.clamp(0, 1), target))}
-        for key, (_, term) in terms.items():
-            for mk, mv in term.metrics.items():
-                record.setdefault("metrics", {})[f"{key}.{mk}"] = mv
+        if measured:
+            record["metrics"] = measured
         return record
 
     def _energy(self, ctx: LossContext, window: Window, layer: str, terms) -> Energy:
         """The phase's loss as a function of one layer's prediction on a sub-window, with the
         render (detached) and the other layers held at this step's values."""
-        base = replace(ctx, rendered=ctx.rendered.detach())
+        base = replace(ctx, rendered=ctx.rendered.detach(), record=False)
 
         def energy(sub: Window, prediction: Tensor) -> Tensor:
             c = base

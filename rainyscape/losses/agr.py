@@ -94,7 +94,8 @@ class AdaptiveGradientRotation(Loss):
     def __call__(self, ctx: LossContext) -> Tensor:
         rain = ctx.rain if ctx.rain is not None else torch.zeros_like(ctx.rendered)
         theta, valid = self.estimate(ctx)
-        self._record(ctx.view_ids, theta, valid)
+        if ctx.record:  # the network update's angles, not a latent update's crop
+            self._record(ctx.view_ids, theta, valid)
         return agr_loss(ctx.rendered, ctx.target, rain, theta, valid,
                         self.config.background_weight, self.config.kernel, self.config.gain)
 
