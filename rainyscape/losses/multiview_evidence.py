@@ -3,9 +3,10 @@
 Rain streaks are bright, thin and differ from view to view; the scene does not. Every pixel
 of a batch is lifted to 3D with the field's rendered depth, projected into the k nearest
 training views, and compared with the median of what they see there: rain is where the
-pixel is brighter than that median. The median shrugs off a neighbour whose view is
-occluded or rainy itself; no learning is involved, so the evidence is there from the first
-joint step. Pure functions on tensors.
+pixel is brighter than that median. A neighbour whose own depth at the projection is nearer
+than the point (an occluder in front of it, judged by that view's last rendered depth) does
+not vote; the median shrugs off the remaining odd neighbour (rainy itself). No learning is
+involved, so the evidence is there from the first joint step. Pure functions on tensors.
 """
 
 from __future__ import annotations
@@ -34,13 +35,16 @@ def backproject(cameras: Cameras, window: Window, depth: Tensor) -> Tensor:
     return rays.origins + rays.directions * t[..., None]
 
 
-def neighbour_colours(points: Tensor, neighbours: Tensor, cameras: Cameras, images: Tensor
+def neighbour_colours(points: Tensor, neighbours: Tensor, cameras: Cameras, images: Tensor,
+                      depths: Tensor | None = None, occlusion_tolerance: float = 0.05
                       ) -> tuple[Tensor, Tensor]:
     """What neighbour views see at ``points``.
 
     points (B, h, w, 3), neighbours (B, k) view indices, images (N, 3, H, W) float.
-    Returns colours (B, k, 3, h, w) and validity (B, k, h, w): in front of the camera and
-    inside its image."""
+    Returns colours (B, k, 3, h, w) and validity (B, k, h, w): in front of the camera, inside
+    its image and, with ``depths`` (N, 1, H, W) z-depths of every view (NaN where unknown), not
+    hidden there: the view's depth at the projection is not nearer than the point's by more
+    than ``occlusion_tolerance`` of it."""
     b, h, w, _ = points.shape
     k = neighbours.shape[1]
     height, width = images.shape[-2:]
@@ -53,6 +57,10 @@ def neighbour_colours(points: Tensor, neighbours: Tensor, cameras: Cameras, imag
     sampled = F.grid_sample(images[neighbours.reshape(-1)], grid.reshape(b * k, h * w, 1, 2),
                             mode="bilinear", align_corners=False)  # (B k, 3, P, 1)
     colours = sampled.reshape(b, k, 3, h, w)
+    if depths is not None:
+        seen = F.grid_sample(depths[neighbours.reshape(-1)], grid.reshape(b * k, h * w, 1, 2),
+                             mode="nearest", align_corners=False).reshape(b, k, h * w)
+        valid = valid & ~(seen < z * (1.0 - occlusion_tolerance))  # NaN (unknown) keeps the vote
     return colours, valid.reshape(b, k, h, w)
 
 
