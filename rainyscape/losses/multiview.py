@@ -23,8 +23,8 @@ from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.metrics import ssim_map
-from rainyscape.losses.multiview_evidence import (backproject, neighbour_colours, neighbour_table,
-                                                  rain_evidence)
+from rainyscape.losses.multiview_evidence import (backproject, evidence_over, neighbour_colours,
+                                                  neighbour_median, neighbour_table)
 from rainyscape.losses.rain_losses import dry_weight
 from rainyscape.scene import SceneData
 
@@ -43,6 +43,13 @@ class _Evidence:
         self.depths = torch.full((scene.num_images, 1, scene.height, scene.width), float("nan"), device=device)
 
     def __call__(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
+        """The rain evidence of the batch (B, 3, h, w) and where it is defined (B, 1, h, w)."""
+        ref, defined = self.reference(ctx)
+        return evidence_over(ctx.target, ref, defined), defined
+
+    def reference(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
+        """The median of what the neighbour views see at the batch's pixels (B, 3, h, w; NaN
+        where undefined) and where it is defined (B, 1, h, w)."""
         if ctx.output is None or ctx.output.depth is None or ctx.window is None:
             raise ConfigError("multi-view rain evidence needs the field's depth and the batch window")
         depth = ctx.output.depth.detach()
@@ -55,7 +62,7 @@ class _Evidence:
         points = backproject(self.cameras[views], ctx.window, depth)
         colours, valid = neighbour_colours(points, self.neighbours[views], self.cameras, self.images,
                                            self.depths if self.tolerance > 0 else None, self.tolerance)
-        return rain_evidence(ctx.target, colours, valid, self.min_views)
+        return neighbour_median(colours, valid, self.min_views)
 
 
 class _WithEvidence(Loss):
@@ -140,3 +147,36 @@ class MultiviewRain(_WithEvidence):
         evidence, defined = self.evidence(ctx)
         mask = defined.to(evidence.dtype)
         return ((ctx.rain - evidence) ** 2 * mask).sum() / (3 * mask.sum()).clamp_min(1.0)
+
+
+class MultiviewAnchor(_WithEvidence):
+    """Where the rain head sees rain, the render B should be what the neighbour views see
+    there: R decides where, the neighbours decide how much (beyond the paper). The anchor is
+    the median of the occlusion-checked neighbours' colours at the pixel's point (the
+    rendered depth, detached); a pixel the head calls dry is left to the photometric loss."""
+
+    description = "mv-anchor: on the predicted rain, B vs the median of the neighbour views"
+    phases = ("joint",)
+    needs = ("rain",)
+
+    @dataclass
+    class Config:
+        views: int = bounded(6, 2)
+        min_views: int = bounded(2, 1)
+        occlusion: float = bounded(0.05, 0.0, 1.0)  # a neighbour nearer by this share does not vote (0: no test)
+        scale: float = bounded(0.02, 1e-4, 1.0)  # predicted rain (grey levels) at which a pixel counts 1 - 1/e
+
+    def __init__(self, config: "MultiviewAnchor.Config | None" = None):
+        super().__init__(config or self.Config())
+        self.evidence: _Evidence | None = None
+
+    def setup(self, scene: SceneData, device: torch.device) -> None:
+        c = self.config
+        self.evidence = _Evidence(scene, device, c.views, c.min_views, c.occlusion)
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        ref, defined = self.evidence.reference(ctx)
+        rainy = (1.0 - dry_weight(ctx.rain, self.config.scale)) * defined  # (B, 1, h, w), detached
+        diff = torch.where(defined, ctx.rendered - ref, torch.zeros_like(ctx.rendered)).abs()
+        self.metrics = {"anchored": float(rainy.mean())}
+        return (rainy * diff).sum() / (3 * rainy.numel())

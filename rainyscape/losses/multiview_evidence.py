@@ -64,6 +64,22 @@ def neighbour_colours(points: Tensor, neighbours: Tensor, cameras: Cameras, imag
     return colours, valid.reshape(b, k, h, w)
 
 
+def neighbour_median(colours: Tensor, valid: Tensor, min_views: int = 2) -> tuple[Tensor, Tensor]:
+    """The median (B, 3, h, w) of what the valid neighbours see (colours (B, k, 3, h, w), valid
+    (B, k, h, w)), and where it is defined (B, 1, h, w): at least ``min_views`` of them (the
+    median is NaN elsewhere)."""
+    nan = torch.full_like(colours, float("nan"))
+    ref = torch.where(valid[:, :, None], colours, nan).nanmedian(dim=1).values
+    return ref, valid.sum(1, keepdim=True) >= min_views
+
+
+def evidence_over(observed: Tensor, ref: Tensor, defined: Tensor) -> Tensor:
+    """How much brighter ``observed`` (B, 3, h, w) is than the neighbours' median ``ref``, where
+    that is ``defined`` (0 elsewhere)."""
+    evidence = (observed - ref).clamp_min(0)
+    return torch.where(defined & torch.isfinite(evidence), evidence, torch.zeros_like(evidence))
+
+
 def rain_evidence(observed: Tensor, colours: Tensor, valid: Tensor, min_views: int = 2
                   ) -> tuple[Tensor, Tensor]:
     """How much brighter each pixel is than the median of its neighbours' views.
@@ -71,9 +87,5 @@ def rain_evidence(observed: Tensor, colours: Tensor, valid: Tensor, min_views: i
     observed (B, 3, h, w), colours (B, k, 3, h, w), valid (B, k, h, w). Returns the evidence
     (B, 3, h, w) >= 0 and where it is defined (B, 1, h, w): at least ``min_views`` valid
     neighbours."""
-    nan = torch.full_like(colours, float("nan"))
-    ref = torch.where(valid[:, :, None], colours, nan).nanmedian(dim=1).values  # (B, 3, h, w)
-    defined = (valid.sum(1, keepdim=True) >= min_views)
-    evidence = (observed - ref).clamp_min(0)
-    evidence = torch.where(defined & torch.isfinite(evidence), evidence, torch.zeros_like(evidence))
-    return evidence, defined
+    ref, defined = neighbour_median(colours, valid, min_views)
+    return evidence_over(observed, ref, defined), defined

@@ -84,6 +84,39 @@ def frustum_points(scene: SceneData, count: int, generator: torch.Generator) -> 
     return points, colors
 
 
+def depth_guided_points(scene: SceneData, points: Tensor, count: int, generator: torch.Generator,
+                        neighbours: int = 3) -> tuple[Tensor, Tensor]:
+    """``count`` points on random pixels of random training views, each at the z-depth its
+    nearest sparse points (in the image) have there (inverse-distance weighted), coloured by
+    the pixel: a dense start where a sparse SfM model is thin (untextured walls, road), with
+    depths from what the views themselves triangulated. Views that see fewer than
+    ``neighbours`` points get none."""
+    train = torch.tensor(scene.train_indices or list(range(scene.num_images)))
+    per_view = torch.bincount(torch.randint(len(train), (count,), generator=generator), minlength=len(train))
+    uv_all, z_all = scene.cameras[train].project(points.double().to(scene.cameras.c2w.dtype))
+    out_p, out_c = [], []
+    for i, v in enumerate(train.tolist()):
+        n = int(per_view[i])
+        uv, z = uv_all[i], z_all[i]
+        seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < scene.width) & (uv[:, 1] >= 0) & (uv[:, 1] < scene.height)
+        if n == 0 or int(seen.sum()) < neighbours:
+            continue
+        uv, z = uv[seen].float(), z[seen].float()
+        xs = torch.randint(scene.width, (n,), generator=generator)
+        ys = torch.randint(scene.height, (n,), generator=generator)
+        pix = torch.stack([xs, ys], -1).float() + 0.5
+        dist, idx = torch.cdist(pix, uv).topk(neighbours, largest=False)
+        weight = 1.0 / dist.clamp_min(0.5)
+        depth = (z[idx] * weight).sum(-1) / weight.sum(-1)
+        rays = pixel_rays(scene.cameras[[v]], xs[None], ys[None])
+        t = depth[None] / rays.z_scale  # z-depth -> distance along the ray
+        out_p.append((rays.origins + rays.directions * t[..., None])[0].float())
+        out_c.append(scene.images[v, ys, xs].float() / 255.0)
+    if not out_p:
+        return torch.zeros(0, 3), torch.zeros(0, 3)
+    return torch.cat(out_p), torch.cat(out_c)
+
+
 def nearest_neighbour_scale(points: Tensor, k: int = 3) -> Tensor:
     """Mean distance from each point to its k nearest others (3DGS's initial scale)."""
     from scipy.spatial import cKDTree
@@ -108,6 +141,9 @@ class GaussianField(Field):
         # auto: the scene's points if it has them, else frustum on forward-facing captures, else random
         init: InitMode = "auto"
         init_points: int = bounded(100_000, 0)  # at most this many of the scene's sparse points (random subset)
+        # with sparse points: this many more on training pixels at the depth of their nearest
+        # sparse points in the image (a dense start where SfM is thin; depth_guided_points)
+        init_fill: int = bounded(0, 0, 10_000_000)
         random_points: int = bounded(100_000, 0)  # random Gaussians (gsplat: 100k) ...
         random_extent: float = bounded(3.0, 0.0)  # ... in a cube of this x the scene extent about the cameras' centroid (0: the scene box)
         init_opacity: float = bounded(0.1, hi=0.99, above=0.0)
@@ -194,6 +230,10 @@ class GaussianField(Field):
             if len(points) > keep:
                 pick = torch.randperm(len(points), generator=gen)[:keep]
                 points, colors = points[pick], colors[pick]
+            fill = int(min(c.init_fill, max(cap - len(points), 0)))
+            if fill > 0:
+                more, more_colors = depth_guided_points(scene, points, fill, gen)
+                points, colors = torch.cat([points, more]), torch.cat([colors, more_colors])
         elif init == "frustum":
             points, colors = frustum_points(scene, max(1, int(min(c.random_points, cap))), gen)
         else:
