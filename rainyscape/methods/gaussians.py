@@ -29,11 +29,12 @@ PAPER_WARMUP = 4000 / 30000  # the paper's warm-up: 4k of 30k steps
 # A smaller rain head than the paper's (same layout), as rainyscape-nerf uses on a CPU.
 CPU_RAIN_HEAD = {"lowres_channels": (32, 32, 32, 32), "highres_channels": 16}
 # CPU budget (docs/benchmarks.md, "Fitting real captures"): at most 50k Gaussians, and one
-# per 5 training pixels on small scenes; refinements at least 50 steps apart in short runs.
-CPU_GAUSSIANS = {"max_gaussians": 50_000, "pixels_per_gaussian": 5, "min_refine_every": 50}
+# per 5 training pixels on small scenes; refinements at least 50 steps apart in short runs;
+# 20k points filled in at the depth of the nearest SfM points (small views give few).
+CPU_GAUSSIANS = {"max_gaussians": 50_000, "pixels_per_gaussian": 5, "min_refine_every": 50, "init_fill": 20_000}
 # The GPU recipe: the 3DGS paper's run, its schedule unscaled (densify from 500 to 15k every
 # 100, resets every 3k), no Gaussian cap.
-GS_GPU = ["trainer.max_iters=30000", "trainer.iters_per_view=0", "field.max_gaussians=0", "field.pixels_per_gaussian=0",
+GS_GPU = ["trainer.max_iters=30000", "trainer.iters_per_view=0", "field.init_fill=0", "field.max_gaussians=0", "field.pixels_per_gaussian=0",
           "field.min_refine_every=0", "trainer.eval_every=5000", "trainer.checkpoint_every=5000"]
 
 gaussians_3dgs = MethodSpec(
