@@ -382,7 +382,7 @@ def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):
     from rainyscape.imaging.metrics import psnr
 
     cfg, pipe = _quiet_pipeline("3dgs", tiny_scene, ["trainer.max_iters=200", "phases.fit.patch_size=0",
-                                                     "field.init_points=3000", "field.max_gaussians=5000",
+                                                     "field.init_points=3000", "field.init_fill=0", "field.max_gaussians=5000",
                                                      "field.min_refine_every=10", "trainer.log_every=5"])
     view = tiny_scene.eval_indices[0]
     clean = tiny_scene.clean_images[view].permute(2, 0, 1).float() / 255
