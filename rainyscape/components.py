@@ -173,7 +173,6 @@ class LossContext:
     step: int
     phase: str
     window: Window | None = None  # which pixels of the views the batch holds
-    max_iters: int = 0  # the run's length (0: unknown), for terms with a schedule over the run
 
     @property
     def rain(self) -> Tensor | None:

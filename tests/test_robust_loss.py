@@ -17,9 +17,9 @@ from rainyscape.losses.robust_filter import (ParamReset, RobustFilter, blend_wei
                                              robust_filter_mask)
 
 
-def _ctx(rendered, target, step=0, max_iters=0):
+def _ctx(rendered, target, step=0):
     return LossContext(rendered, target, {}, RenderOutput(rendered), torch.zeros(len(rendered), dtype=torch.long),
-                       step, "fit", max_iters=max_iters)
+                       step, "fit")
 
 
 def _residual(inlier_rows: list[str]) -> torch.Tensor:
@@ -131,11 +131,22 @@ def test_the_3x3_rule_relabels_a_1px_streak_as_clean_but_not_a_3px_band():
     assert bool((mask[0, 0, :, 2:5] == 0).all())  # 3 of 9 at its edges, 0 of 9 inside
 
 
-def test_blend_in_schedule_is_stretched_to_the_run():
-    assert blend_weight(0, 1500, -3e-3, 30_000) == 1.0  # every pixel trains at the start
-    # step 150 of 1500 is step 3000 of 30k: exp(-3e-3 floor(3001 / 1.5)) = exp(-6)
-    assert blend_weight(150, 1500, -3e-3, 30_000) == pytest.approx(math.exp(-6.0))
-    assert blend_weight(3000, 30_000, -3e-3, 30_000) == pytest.approx(math.exp(-6.0))
+def test_blend_in_schedule_by_hand():
+    assert blend_weight(0, -3e-3) == 1.0  # every pixel trains at the start
+    assert blend_weight(1, -3e-3) == pytest.approx(math.exp(-3e-3))  # floor(2 / 1.5) = 1
+    assert blend_weight(2999, -3e-3) == pytest.approx(math.exp(-6.0))  # floor(3000 / 1.5) = 2000
+
+
+def test_the_threshold_statistic_is_the_codes_column_means_or_the_pixels():
+    rendered = torch.zeros(1, 3, 4, 2)
+    target = torch.zeros(1, 3, 4, 2)
+    target[:, :, 0, 0] = 0.8  # one bright pixel in the first column
+    for statistic, expected in (("column", 0.2), ("pixel", 0.8)):
+        loss = RobustFilter(RobustFilter.Config(bins=10, blend_in=False, reset_group="", percentile=1.0,
+                                                statistic=statistic))
+        loss(_ctx(rendered, target))
+        # the largest value: a column mean of 0.8 / 4 rows, or the pixel itself
+        assert loss.threshold == pytest.approx(expected)
 
 
 def test_robust_filter_trains_only_inliers_once_blended_in():
@@ -153,7 +164,7 @@ def test_robust_filter_trains_only_inliers_once_blended_in():
     # blended in at the first step (a = 1): every pixel trains, the plain L1
     loss = RobustFilter(RobustFilter.Config(reset_group=""))
     loss.threshold = 0.1
-    assert float(loss(_ctx(rendered, target, step=0, max_iters=1500))) == pytest.approx(
+    assert float(loss(_ctx(rendered, target, step=0))) == pytest.approx(
         float((rendered - target).abs().mean()))
     state = loss.state_dict()
     other = RobustFilter(RobustFilter.Config(reset_group=""))

@@ -129,8 +129,7 @@ class Trainer:
         for head in heads:
             head.train()
             layers[head.layer] = head(view_ids.to(self.device), window)
-        ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window,
-                          self.cfg.max_iters)
+        ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window)
         terms = self.p.loss_terms(name)
         total, values = compute_losses(terms, ctx)
         # the render with every layer laid over it (what the input should look like)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -66,11 +67,15 @@ def robust_filter_mask(residuals: Tensor, threshold: float, smooth_size: int = 3
     return torch.maximum(inlier, neighbourhood_inliers(inlier, smooth_size, smooth_threshold))
 
 
-def blend_weight(step: int, max_iters: int, beta: float, reference_iters: int) -> float:
-    """a in Bernoulli(a + (1 - a) mask): exp(beta floor((1 + s) / 1.5)) with the step s
-    stretched to a ``reference_iters`` run (``max_iters`` 0: s = step)."""
-    s = step * reference_iters / max_iters if max_iters > 0 else step
-    return math.exp(beta * math.floor((1 + s) / 1.5))
+def blend_weight(step: int, beta: float) -> float:
+    """a in Bernoulli(a + (1 - a) mask): exp(beta floor((1 + step) / 1.5))."""
+    return math.exp(beta * math.floor((1 + step) / 1.5))
+
+
+def column_residuals(rendered: Tensor, target: Tensor) -> Tensor:
+    """The absolute error averaged over each image column's pixels (B, 3, 1, w): the statistic
+    SpotLessSplats' code histograms (a mean over the rows of its (1, H, W, 3) error)."""
+    return (rendered - target).abs().mean(dim=2, keepdim=True)
 
 
 class ParamReset(Callback):
@@ -119,9 +124,12 @@ class RobustFilter(Loss):
         decay: float = 0.95  # the old histogram's weight at each step
         smooth_size: int = 3  # the neighbourhood rule (1: off)
         smooth_threshold: float = 0.5  # ... inlier if more than this share of it is
-        blend_in: bool = True  # Bernoulli blend-in of the mask
-        blend_rate: float = -3e-3  # beta of the blend-in, per step of a reference_iters run
-        reference_iters: int = 30_000  # the schedule's run length (stretched to trainer.max_iters)
+        # the threshold's statistic: "column" (the authors' code: per-column mean errors) or
+        # "pixel" (per-pixel residuals, as the method is described)
+        statistic: Literal["column", "pixel"] = "column"
+        blend_in: bool = True  # Bernoulli blend-in of the mask ...
+        blend_rate: float = -3e-3  # ... a = exp(beta floor((1 + step) / 1.5)), in steps
+        reference_iters: int = 30_000  # reset_at is a step of a run this long (stretched to trainer.max_iters)
         ssim_weight: float = 0.0  # D-SSIM share (SpotLessSplats: 0), unmasked as in its code
         reset_group: str = "shN"  # parameter group clamped once ("" : no reset)
         reset_at: int = 8002  # ... after this step of a reference_iters run
@@ -153,24 +161,26 @@ class RobustFilter(Loss):
         self.hist = c.decay * self.hist + residual_histogram(residuals, c.bins)
         self.threshold = histogram_percentile(self.hist, c.percentile)
 
-    def mask(self, residuals: Tensor, step: int, max_iters: int) -> Tensor:
+    def mask(self, residuals: Tensor, step: int, statistic: Tensor | None = None) -> Tensor:
         """This step's (blended) mask (B, 1, h, w) with the threshold learnt so far; then the
-        step's residuals go into the histogram."""
+        step's ``statistic`` (default: the residuals) goes into the histogram."""
         c = self.config
         with torch.no_grad():
             mask = robust_filter_mask(residuals, self.threshold, c.smooth_size, c.smooth_threshold)
             used = self.threshold
             self.metrics = {"inlier_fraction": float(mask.mean()), "threshold": used}
             if c.blend_in:
-                a = blend_weight(step, max_iters, c.blend_rate, c.reference_iters)
+                a = blend_weight(step, c.blend_rate)
                 mask = torch.bernoulli((a + (1.0 - a) * mask).clamp(0.0, 1.0))
                 self.metrics["blend"] = a
-            self.update(residuals)
+            self.update(residuals if statistic is None else statistic)
         return mask
 
     def __call__(self, ctx: LossContext) -> Tensor:
         c = self.config
-        mask = self.mask(absolute_residuals(ctx.rendered.detach(), ctx.target), ctx.step, ctx.max_iters)
+        rendered = ctx.rendered.detach()
+        statistic = column_residuals(rendered, ctx.target) if c.statistic == "column" else None
+        mask = self.mask(absolute_residuals(rendered, ctx.target), ctx.step, statistic)
         loss = ((ctx.rendered - ctx.target).abs() * mask).mean()  # over every pixel, as the authors'
         if c.ssim_weight > 0:
             d_ssim = 1.0 - ssim_map(ctx.rendered, ctx.target, padding="same").mean()
