@@ -23,12 +23,19 @@ def test_over_composites_by_hand():
 
 @pytest.fixture(scope="module")
 def head(tiny_scene):
-    return DistractorGaussians(DistractorGaussians.Config(gaussians_per_view=200, backend="torch"), tiny_scene)
+    return DistractorGaussians(DistractorGaussians.Config(gaussians_per_view=200, reference_pixels=0, backend="torch"), tiny_scene)
 
 
 def _full(scene, view: int) -> tuple[torch.Tensor, Window]:
     zeros = torch.zeros(1, dtype=torch.long)
     return torch.tensor([view]), Window(zeros, zeros.clone(), scene.width, scene.height)
+
+
+def test_a_view_starts_with_desplats_density_of_distractors(tiny_scene):
+    # 1000 per 504 x 378 px view (DeSplat's images): 1000 x 48 x 48 / 190512 = 12 here
+    head = DistractorGaussians(DistractorGaussians.Config(backend="torch"), tiny_scene)
+    assert head.initial_count() == round(1000 * 48 * 48 / (504 * 378)) == 12
+    assert set(head.counts().values()) == {12}
 
 
 def test_each_view_renders_only_its_own_distractors(head, tiny_scene):
@@ -83,7 +90,8 @@ def test_an_opaque_layer_that_explains_the_view_leaves_the_render_untrained():
 
 
 def test_densification_culls_transparent_and_clones_high_gradient_distractors(tiny_scene):
-    cfg = DistractorGaussians.Config(gaussians_per_view=50, backend="torch", refine_every_views=1, refine_stop=1.0)
+    cfg = DistractorGaussians.Config(gaussians_per_view=50, reference_pixels=0, backend="torch", refine_every_views=1,
+                                      refine_stop=1.0)
     head = DistractorGaussians(cfg, tiny_scene)
     optimizers = {g.name: torch.optim.Adam(g.params, lr=g.lr) for g in head.param_groups()}
     view = head.views[0]

@@ -84,7 +84,8 @@ def test_robust_3dgs_trains_and_resets_the_view_dependent_colour(tmp_path, tiny_
 
 def test_desplat_trains_its_distractors_and_evaluates_the_static_scene(tmp_path, tiny_scene_dir):
     run, records = _train("desplat", tmp_path, tiny_scene_dir, "trainer.max_iters=6", "field.max_gaussians=2000",
-                          "rain_head.gaussians_per_view=100", "rain_head.refine_every_views=1")
+                          "rain_head.gaussians_per_view=100", "rain_head.reference_pixels=0",
+                          "rain_head.refine_every_views=1")
     assert len(records) == 6 and 0.0 < records[-1]["metrics"]["desplat.distractor_alpha"] < 1.0
     summary = json.loads((run / "metrics.json").read_text())["summary"]
     assert summary["train_psnr"] > 5 and "train_rain_recovered" in summary  # the layer's share of the rain
@@ -105,7 +106,8 @@ def test_the_peers_resume_exactly(tmp_path, tiny_scene_dir, tiny_scene, method):
     if method == "desplat":  # a refinement of the distractors (after a pass over the views) on each side
         views = len(tiny_scene.train_indices)
         steps, stop = 2 * views + 1, views + 1
-        common += ["rain_head.gaussians_per_view=50", "rain_head.refine_every_views=1", "rain_head.refine_stop=1"]
+        common += ["rain_head.gaussians_per_view=50", "rain_head.reference_pixels=0", "rain_head.refine_every_views=1",
+                   "rain_head.refine_stop=1"]
     common.append(f"trainer.max_iters={steps}")
     full = train_and_evaluate(config.method_config(method, common + [f"trainer.output_dir={tmp_path / 'a'}"]))
     first = train_and_evaluate(config.method_config(method, common + [f"trainer.output_dir={tmp_path / 'b'}",

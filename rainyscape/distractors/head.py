@@ -1,8 +1,10 @@
 """DeSplat's per-view distractor Gaussians (Wang et al., CVPR 2025) as an image-layer head.
 
-Each training view owns a set of Gaussians that only it sees: they start as
-``gaussians_per_view`` (1000) Gaussians spread over the view's frustum a short way in front
-of its camera (``init_depth`` x the scene extent; DeSplat: 0.02 of its normalised scene),
+Each training view owns a set of Gaussians that only it sees: they start as DeSplat's 1000
+Gaussians per 504 x 378 px view, as a density (86 at 128 px: 1000 on a 128 px view let the
+layer copy the whole view, 1.6 dB lower on crossroad-traffic), spread over the view's
+frustum a short way in front of its camera (``init_depth`` x the scene extent; DeSplat:
+0.02 of its normalised scene),
 with plain RGB colours (no view dependence), opacity 0.1, the 3-nearest-neighbour scale
 and random rotations. For (view, window) the head rasterises that view's set alone into a
 premultiplied colour D and a coverage alpha_D: a (B, 4, h, w) layer laid over the scene's
@@ -67,7 +69,11 @@ class DistractorGaussians(ImageHead):
 
     @dataclass
     class Config:
-        gaussians_per_view: int = bounded(1000, 1)  # initial Gaussians of each training view
+        # initial Gaussians of a training view: DeSplat's 1000 on its images (RobustNeRF's and
+        # On-the-go's at 1/8 scale, 504 x 378 px) as a density, so a view gets 1000 x its
+        # pixels / reference_pixels (86 at 128 x 128 px; reference_pixels 0: 1000 whatever the size)
+        gaussians_per_view: int = bounded(1000, 1)
+        reference_pixels: int = bounded(504 * 378, 0)
         init_depth: float = bounded(0.02, above=0.0)  # x the scene extent, in front of the camera
         init_opacity: float = bounded(0.1, hi=0.99, above=0.0)
         lr_means: float = bounded(1.6e-4, 0.0)  # x the scene extent, decaying to lr_means_final
@@ -106,9 +112,16 @@ class DistractorGaussians(ImageHead):
         self.last: list[tuple[int, Rasterized, tuple[int, int]]] = []  # this step's renders (training)
         self.densify = DistractorDensify(self)
 
+    def initial_count(self) -> int:
+        """Distractor Gaussians a view starts with (its share of DeSplat's density)."""
+        c = self.config
+        if c.reference_pixels <= 0:
+            return c.gaussians_per_view
+        return max(1, round(c.gaussians_per_view * self.width * self.height / c.reference_pixels))
+
     def _initial_set(self, cameras: Cameras, view: int, gen: torch.Generator) -> nn.ParameterDict:
         c = self.config
-        n = c.gaussians_per_view
+        n = self.initial_count()
         means = frustum_slice(cameras, view, n, c.init_depth * self.extent, gen)
         logit = torch.logit(torch.tensor(c.init_opacity)).item()
         return nn.ParameterDict({
