@@ -44,7 +44,7 @@ def test_each_view_renders_only_its_own_distractors(head, tiny_scene):
     assert layer_a.shape == (1, 4, tiny_scene.height, tiny_scene.width)
     alpha = layer_a[:, 3]
     assert 0.05 < float(alpha.detach().mean()) < 0.95  # the initial Gaussians cover the view, partly
-    assert float((layer_a[:, :3] - alpha[:, None]).max()) <= 1e-5  # premultiplied: colour <= alpha
+    assert float((layer_a[:, :3] - alpha[:, None]).detach().max()) <= 1e-5  # premultiplied: colour <= alpha
     with torch.no_grad():
         head.params_of(b)["colors"].add_(0.3)
         head.params_of(b)["opacities"].add_(2.0)
