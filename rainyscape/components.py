@@ -113,18 +113,28 @@ class Field(nn.Module):
 
 
 class ImageHead(nn.Module):
-    """Predicts an additive image layer for (view, window): the observed image is the field's
-    render plus the layers of the heads active in the phase. ``layer`` names it for the
-    losses (``LossContext.layers``)."""
+    """Predicts an image layer for (view, window): the observed image is the field's render
+    with the layers of the heads active in the phase laid over it (:meth:`composite`; an
+    additive layer by default). ``layer`` names it for the losses (``LossContext.layers``)."""
 
     description = ""
     layer = ""
 
-    def forward(self, view_ids: Tensor, window: Window) -> Tensor:  # (B, 3, h, w)
+    def forward(self, view_ids: Tensor, window: Window) -> Tensor:  # (B, C, h, w), C = 3 if additive
         raise NotImplementedError  # abstract
 
     def param_groups(self) -> list[ParamGroup]:
         raise NotImplementedError  # abstract
+
+    def composite(self, below: Tensor, layer: Tensor) -> Tensor:
+        """The image (B, 3, h, w) that ``layer`` (this head's prediction) makes of ``below``
+        (the render, with the layers of earlier heads): ``below + layer`` for an additive
+        layer; a head predicting an occluding (colour, alpha) layer lays it over instead."""
+        return below + layer
+
+    def callbacks(self) -> list[Callback]:
+        """Hooks the trainer calls for this head (e.g. changing its parameter set)."""
+        return []
 
 
 Energy = Callable[[Window, Tensor], Tensor]
@@ -194,6 +204,11 @@ class Loss:
 
     def setup(self, scene: SceneData, device: torch.device) -> None:
         """Called once the pipeline is built; terms that look at other views keep what they need."""
+
+    def callbacks(self) -> list[Callback]:
+        """Hooks the trainer calls for this term: changes to the parameters it trains that its
+        method schedules with it (SpotLessSplats' reset of the view-dependent colour)."""
+        return []
 
     def state_dict(self) -> dict:
         return {}

@@ -143,7 +143,7 @@ def test_every_recipe_builds_and_a_field_family_shares_one_budget(profile):
     budgets = {m: cell_budget(method_config(m, [f"profile={profile}"]), 512, 512, 44) for m in ours}
     groups = {"grid": ("nerf", "robust-nerf", "rainyscape-nerf"),
               "nerf-mlp": ("vanilla-nerf", "rainyscape-vanilla-nerf"),
-              "gaussians": ("3dgs", "robust-3dgs", "rainyscape-3dgs", "rainyscape-plus")}
+              "gaussians": ("3dgs", "robust-3dgs", "desplat", "rainyscape-3dgs", "rainyscape-plus")}
     assert sorted(ours) == sorted(m for g in groups.values() for m in g)
     for family, methods in groups.items():
         first = budgets[methods[0]]

@@ -47,6 +47,18 @@ def test_cpu_set_resolves_to_its_sizes_and_budgets():
     assert b.pixels_per_step == 128 * 128  # a whole view of the set's size
 
 
+def test_distractors_set_plans_the_transient_presets_for_the_peers_at_equal_budgets():
+    d = SCENE_SETS["distractors"]
+    assert set(d.presets) <= set(PRESETS) and all(PRESETS[p].transients for p in d.presets)
+    plan = _plan(scenes="distractors", methods="nerf,robust-nerf,3dgs,robust-3dgs,desplat")
+    assert plan.scene_set == "distractors" and [p.label for p in plan.scenes] == list(d.presets)
+    assert all((p.width, p.height, p.rows, p.cols) == (128, 128, 3, 6) for p in plan.scenes)
+    assert plan.mismatches == []  # each peer at its plain field's budget
+    steps = _iters(plan)
+    assert steps["robust-nerf"] == steps["nerf"] and steps["robust-3dgs"] == steps["desplat"] == steps["3dgs"]
+    assert "3dgs on clean views" in steps  # the ceiling: the field on the views without transients
+
+
 def test_every_cell_trains_the_recipe_its_budget_was_checked_for():
     assert _plan(scenes="demo", device="cpu").overrides[0] == "profile=cpu"
     assert _plan(scenes="demo", device="cpu", profile="gpu").overrides[0] == "profile=gpu"

@@ -19,6 +19,7 @@ RANKS = {
     "registry": 2, "scene": 2,
     "config": 3, "components": 3,
     "dataparsers": 4, "fields": 4, "rain": 4, "losses": 4, "postprocess": 4, "methods": 4,
+    "distractors": 4.5,  # components that compose the fields' public functions (DeSplat's head)
     "engine": 5, "synth": 5, "process": 5,
     "eval": 6,
     "workflow": 7,

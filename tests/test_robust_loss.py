@@ -1,100 +1,189 @@
-"""The RobustNeRF-style trimmed loss: which pixels it keeps, its running threshold, its state."""
+"""The weight-free robust losses on residuals worked out by hand: RobustNeRF's trimmed L2
+(pixel test, 3 x 3 and 16 x 16 patch decisions, the previous batch's quantile) and
+SpotLessSplats' RobustFilter (running-histogram percentile, 3 x 3 rule, blend-in, the SH
+reset that goes with it)."""
 
 from __future__ import annotations
+
+import math
 
 import pytest
 import torch
 
-from rainyscape.components import LossContext, RenderOutput
-from rainyscape.losses.robust import (RobustPhotometric, block_inliers, pixel_residuals, robust_mask,
-                                      smoothed_inliers)
-
-
-def _outlier_image(seed: int = 0):
-    """A render, and a target = render + faint noise + a 14 x 14 blob of clutter + three
-    isolated bright pixels (fine texture the field has not learnt yet)."""
-    g = torch.Generator().manual_seed(seed)
-    rendered = torch.rand(1, 3, 48, 48, generator=g) * 0.5 + 0.25
-    target = rendered + 0.01 * torch.randn(rendered.shape, generator=g)
-    blob = torch.zeros(1, 1, 48, 48, dtype=torch.bool)
-    blob[..., 18:32, 6:20] = True
-    target = torch.where(blob, torch.ones_like(target), target)
-    spikes = [(5, 40), (40, 5), (40, 40)]
-    for y, x in spikes:
-        target[..., y, x] += 0.3
-    return rendered, target.clamp(0, 1), blob[0, 0], spikes
+from rainyscape.components import LossContext, RenderOutput, TrainState
+from rainyscape.errors import ConfigError
+from rainyscape.losses.robust import RobustNeRFLoss, robustnerf_mask
+from rainyscape.losses.robust_filter import (ParamReset, RobustFilter, blend_weight, histogram_percentile,
+                                             robust_filter_mask)
 
 
 def _ctx(rendered, target, step=0):
-    return LossContext(rendered, target, {}, RenderOutput(rendered), torch.zeros(1, dtype=torch.long),
-                       step, "warmup")
+    return LossContext(rendered, target, {}, RenderOutput(rendered), torch.zeros(len(rendered), dtype=torch.long),
+                       step, "fit")
 
 
-def test_mask_trims_the_clutter_and_keeps_the_rest():
-    rendered, target, blob, spikes = _outlier_image()
-    residual = pixel_residuals(rendered, target, "l2")
-    thr = torch.quantile(residual.flatten(), 0.8)
-    mask = robust_mask(residual, thr, smooth_size=3, smooth_threshold=0.5, block_size=16, block_threshold=0.9)[0, 0]
-    assert float(mask[blob].mean()) < 0.03  # the clutter is trimmed (smoothing rounds its 4 corners)
-    assert float(mask[19:31, 7:19].max()) == 0.0
-    assert float(mask[~blob].mean()) > 0.99
-    for y, x in spikes:  # isolated outliers among inliers are kept by the smoothing
-        assert mask[y, x] == 1
-        assert (residual[0, 0, y, x] > thr)
+def _residual(inlier_rows: list[str]) -> torch.Tensor:
+    """(1, 1, h, w) residuals: 0.1 where the row string has '1' (inlier), 0.9 where '0'."""
+    grid = [[0.1 if ch == "1" else 0.9 for ch in row] for row in inlier_rows]
+    return torch.tensor(grid)[None, None]
 
 
-def test_smoothing_and_block_decisions():
-    inlier = torch.ones(1, 1, 16, 16)
-    inlier[..., 3, 3] = 0  # a lone outlier: neighbours outvote it
-    inlier[..., 8:12, 8:12] = 0  # a 4x4 cluster: its core stays out
-    smooth = smoothed_inliers(inlier, 3, 0.5)
-    assert smooth[0, 0, 3, 3] == 1 and smooth[0, 0, 10, 10] == 0
-    scattered = (torch.arange(256).reshape(1, 1, 16, 16) % 3 != 0).float()  # 2/3 inliers, spread out
-    assert bool((block_inliers(scattered, 8, 0.5) == 1).all())
-    assert bool((block_inliers(scattered, 8, 0.7) == 0).all())
-    assert bool((block_inliers(scattered, 0, 0.5) == 0).all())  # block decisions off
+def _mask_rows(mask: torch.Tensor) -> list[str]:
+    return ["".join(str(int(v)) for v in row) for row in mask[0, 0].tolist()]
 
 
-def test_threshold_comes_from_recent_batches_and_is_checkpointed():
-    loss = RobustPhotometric(RobustPhotometric.Config(history=2))
-    rendered, target, blob, _ = _outlier_image()
-    assert loss.threshold() is None
-    loss(_ctx(rendered, target))
-    first = loss.threshold()
-    assert first == pytest.approx(float(torch.quantile(pixel_residuals(rendered, target, "l2").flatten(), 0.8)),
-                                  rel=1e-5)
-    # A batch that is pure clutter cannot lower its own bar: it is judged by the learnt threshold.
-    loss(_ctx(rendered, torch.ones_like(target)))
-    assert loss.metrics["threshold"] == pytest.approx(first, rel=1e-6)
-    assert loss.metrics["inlier_fraction"] < 0.2
-    saved = loss.state_dict()
-    restored = RobustPhotometric(RobustPhotometric.Config(history=2))
-    restored.load_state_dict(saved)
+# ---------------------------------------------------------------------------- RobustNeRF
+
+def test_robustnerf_pixel_test_and_3x3_smoothing_by_hand():
+    residual = _residual(["11111",
+                          "10111",
+                          "11100",
+                          "11000",
+                          "11000"])
+    mask = robustnerf_mask(residual, 0.5, smooth_size=3, smooth_threshold=0.5, inner_patch=0)
+    # (1, 1) has 8 of 9 inlier neighbours: inlier. (2, 3) has 4 of 9 (not more than half) and
+    # (3, 2) 4 of 9: they stay out; the corner (4, 4) sees 0 of 9 (zero padding counts as out).
+    assert _mask_rows(mask) == ["11111",
+                                "11111",
+                                "11100",
+                                "11000",
+                                "11000"]
+
+
+def test_robustnerf_patch_decision_marks_the_inner_8x8_of_a_mostly_clean_16x16_patch():
+    cols = 7  # 7 outlier columns: 144 / 256 = 56 % of the patch is inlier after smoothing
+    rows = ["0" * cols + "1" * (16 - cols)] * 16
+    mask = robustnerf_mask(_residual(rows), 0.5)[0, 0]
+    assert bool((mask[4:12, 4:7] == 1).all())  # the inner 8 x 8 (rows / columns 4..11) is taken whole
+    assert bool((mask[:4, :7] == 0).all()) and bool((mask[12:, :7] == 0).all())
+    assert bool((mask[:, 7:] == 1).all())
+    rows = ["0" * 9 + "1" * 7] * 16  # 44 % inlier: no patch decision
+    mask = robustnerf_mask(_residual(rows), 0.5)[0, 0]
+    assert bool((mask[:, :8] == 0).all())
+
+
+def test_robustnerf_threshold_is_the_previous_batchs_quantile_and_is_checkpointed():
+    g = torch.Generator().manual_seed(0)
+    rendered = torch.rand(2, 3, 16, 16, generator=g)
+    target = torch.rand(2, 3, 16, 16, generator=g)
+    loss = RobustNeRFLoss()
+    first = loss(_ctx(rendered, target))
+    # before any batch the threshold is 1.0: every residual (< 1) is inlier, the plain MSE
+    assert loss.metrics["threshold"] == 1.0 and loss.metrics["inlier_fraction"] == 1.0
+    assert float(first) == pytest.approx(float(((rendered - target) ** 2).mean()), rel=1e-6)
+    residual = ((rendered - target) ** 2).mean(1)
+    assert loss.threshold == pytest.approx(float(torch.quantile(residual.flatten(), 0.8)), rel=1e-6)
+    restored = RobustNeRFLoss()
+    restored.load_state_dict(loss.state_dict())
     a, b = loss(_ctx(rendered, target)), restored(_ctx(rendered, target))
     assert float(a) == float(b) and loss.metrics == restored.metrics
-    assert len(loss.recent) == 2  # history bounds the memory
+    assert loss.metrics["inlier_fraction"] < 1.0
 
 
-@pytest.mark.parametrize("config", [RobustPhotometric.Config(),
-                                    RobustPhotometric.Config(residual="l1", ssim_weight=0.2)])
-def test_no_gradient_flows_from_trimmed_pixels(config):
-    rendered, target, blob, _ = _outlier_image()
-    loss = RobustPhotometric(config)
-    loss(_ctx(rendered, target))  # learn the threshold
+def test_robustnerf_no_gradient_from_trimmed_pixels_and_mean_over_every_pixel():
+    rendered = torch.full((1, 3, 16, 16), 0.5)
+    target = rendered.clone()
+    target[..., :4, :4] = 1.0  # a corner blob of clutter (outside the inner 8 x 8)
+    loss = RobustNeRFLoss()
+    loss.threshold = 0.01
     x = rendered.clone().requires_grad_(True)
     value = loss(_ctx(x, target))
     value.backward()
-    grad = x.grad.abs().sum(1)[0]
-    core = torch.zeros_like(blob)
-    core[24:26, 12:14] = True  # 6 px inside the blob: beyond the reach of D-SSIM's 11 x 11 window
-    assert torch.isfinite(value) and float(grad[core].max()) == 0.0
-    assert float(grad[~blob].mean()) > 0
-
-
-def test_bad_options_are_config_errors():
-    from rainyscape.errors import ConfigError
-
+    # the blob is trimmed but for its inner corner (3, 3), whose 3 x 3 neighbourhood is 5 / 9
+    # clean: one pixel of error 0.5 in each channel, over all 16 x 16 x 3 values
+    assert float(value.detach()) == pytest.approx(0.25 / 256)
+    assert float(x.grad[..., :3, :3].abs().max()) == 0.0 and float(x.grad[..., 3, 3].abs().min()) > 0
     with pytest.raises(ConfigError, match="inlier_quantile"):
-        RobustPhotometric(RobustPhotometric.Config(inlier_quantile=0.0))
-    with pytest.raises(ConfigError, match="ssim_weight"):
-        RobustPhotometric(RobustPhotometric.Config(ssim_weight=1.5))
+        RobustNeRFLoss(RobustNeRFLoss.Config(inlier_quantile=0.0))
+
+
+# ---------------------------------------------------------------------- RobustFilter
+
+def test_histogram_percentile_by_hand():
+    hist = torch.tensor([0.0, 3.0, 1.0, 0.0, 6.0])  # 5 bins over [0, 1]
+    assert histogram_percentile(hist, 0.5) == pytest.approx(0.8)  # cumulative 0, 3, 4, 4, 10 >= 5
+    assert histogram_percentile(hist, 0.3) == pytest.approx(0.2)  # >= 3 at the second bin
+    assert histogram_percentile(torch.zeros(5), 0.7) == 1.0
+
+
+def test_running_histogram_decays_and_gives_the_threshold():
+    loss = RobustFilter(RobustFilter.Config(bins=10, blend_in=False, reset_group=""))
+    assert loss.threshold == 1.0
+    a = torch.full((1, 1, 2, 5), 0.05)  # ten residuals in the first bin
+    b = torch.full((1, 1, 2, 5), 0.55)  # ten in the sixth
+    loss.update(a)
+    loss.update(b)
+    expected = torch.zeros(10)
+    expected[0], expected[5] = 0.95 * 10, 10
+    assert torch.allclose(loss.hist, expected)
+    # 70 % of 19.5 is 13.65: reached at the sixth bin, whose left edge is 0.5
+    assert loss.threshold == pytest.approx(0.5)
+
+
+def test_the_3x3_rule_relabels_a_1px_streak_as_clean_but_not_a_3px_band():
+    thin = ["1111111"] * 7
+    thin = [row[:3] + "0" + row[4:] for row in thin]  # a vertical 1 px streak in column 3
+    mask = robust_filter_mask(_residual(thin), 0.5)
+    # each streak pixel has 6 of 9 clean neighbours (the top and bottom ones 4 of 9, zero padding)
+    assert bool((mask[0, 0, 1:6, 3] == 1).all()) and mask[0, 0, 0, 3] == 0 and mask[0, 0, 6, 3] == 0
+    band = ["11" + "000" + "11"] * 7
+    mask = robust_filter_mask(_residual(band), 0.5)
+    assert bool((mask[0, 0, :, 2:5] == 0).all())  # 3 of 9 at its edges, 0 of 9 inside
+
+
+def test_blend_in_schedule_by_hand():
+    assert blend_weight(0, -3e-3) == 1.0  # every pixel trains at the start
+    assert blend_weight(1, -3e-3) == pytest.approx(math.exp(-3e-3))  # floor(2 / 1.5) = 1
+    assert blend_weight(2999, -3e-3) == pytest.approx(math.exp(-6.0))  # floor(3000 / 1.5) = 2000
+
+
+def test_the_threshold_statistic_is_the_codes_column_means_or_the_pixels():
+    rendered = torch.zeros(1, 3, 4, 2)
+    target = torch.zeros(1, 3, 4, 2)
+    target[:, :, 0, 0] = 0.8  # one bright pixel in the first column
+    for statistic, expected in (("column", 0.2), ("pixel", 0.8)):
+        loss = RobustFilter(RobustFilter.Config(bins=10, blend_in=False, reset_group="", percentile=1.0,
+                                                statistic=statistic))
+        loss(_ctx(rendered, target))
+        # the largest value: a column mean of 0.8 / 4 rows, or the pixel itself
+        assert loss.threshold == pytest.approx(expected)
+
+
+def test_robust_filter_trains_only_inliers_once_blended_in():
+    rendered = torch.full((1, 3, 12, 12), 0.5)
+    target = rendered.clone()
+    target[..., 3:8, 3:8] = 1.0  # a 5 x 5 distractor
+    loss = RobustFilter(RobustFilter.Config(blend_in=False, reset_group=""))
+    loss.threshold = 0.1
+    x = rendered.clone().requires_grad_(True)
+    value = loss(_ctx(x, target))
+    value.backward()
+    # trimmed but for the blob's four corners (5 of 9 neighbours clean): L1 of 0.5 there
+    assert float(value.detach()) == pytest.approx(4 * 0.5 / 144)
+    assert float(x.grad[..., 4:7, 4:7].abs().max()) == 0.0
+    # blended in at the first step (a = 1): every pixel trains, the plain L1
+    loss = RobustFilter(RobustFilter.Config(reset_group=""))
+    loss.threshold = 0.1
+    assert float(loss(_ctx(rendered, target, step=0))) == pytest.approx(
+        float((rendered - target).abs().mean()))
+    state = loss.state_dict()
+    other = RobustFilter(RobustFilter.Config(reset_group=""))
+    other.load_state_dict(state)
+    assert torch.equal(other.hist, loss.hist) and other.threshold == loss.threshold
+
+
+def test_sh_reset_clamps_the_group_once_at_its_step_and_restarts_its_moments():
+    shN = torch.nn.Parameter(torch.tensor([[-0.5, 0.2, 0.0005]]))
+    opt = torch.optim.Adam([shN], lr=0.1)
+    shN.grad = torch.ones_like(shN)
+    opt.step()
+    reset = RobustFilter(RobustFilter.Config()).callbacks()[0]
+    assert isinstance(reset, ParamReset)
+    before = shN.detach().clone()
+    state = lambda step: TrainState(step, 1500, "fit", {"shN": opt}, torch.device("cpu"))  # noqa: E731
+    reset.after_step(state(398))  # step 8002 of 30k is step 400 of 1500
+    assert torch.equal(shN.detach(), before)
+    reset.after_step(state(399))
+    assert torch.allclose(shN.detach(), before.clamp(max=0.001))
+    assert float(opt.state[shN]["exp_avg"].abs().max()) == 0.0
+    assert reset.state_dict() == {"done": True}

@@ -60,11 +60,13 @@ def print_presets() -> None:
         s = PRESET_STRENGTH.get(name, {}).get(width) if current else None
         return f"{s[0]:5.1f} dB / {s[1]:.3f}" if s else "not measured"
 
-    print(f"{'preset':<9}  {'scene':<9}  {'views':<11}  {'label':<6}  {'at 128 px':<16}  {'at 512 px':<16}  "
+    wide = max(len(name) for name in PRESETS)
+    print(f"{'preset':<{wide}}  {'scene':<9}  {'views':<11}  {'label':<6}  {'at 128 px':<16}  {'at 512 px':<16}  "
           "description (rainy vs clean PSNR / SSIM)")
     for p in PRESETS.values():
         views = f"{p.rows}x{p.cols} {p.width}px"
-        print(f"{p.name:<9}  {p.scene:<9}  {views:<11}  {p.label_db:4.0f}dB  {column(p.name, 128):<16}  "
+        label = "no rain" if p.transients else f"{p.label_db:4.0f}dB"
+        print(f"{p.name:<{wide}}  {p.scene:<9}  {views:<11}  {label:<6}  {column(p.name, 128):<16}  "
               f"{column(p.name, 512):<16}  {p.level}: {p.description}")
 
 

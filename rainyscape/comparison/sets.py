@@ -14,6 +14,10 @@ light, medium, heavy, slanted by wind, and two directions at once.
 - ``real``: real photographs with the simulator's rain in their own cameras (comparison/captures.py):
   every capture of the captures folder at about 240 px, at light, medium and heavy strength; the
   photos are the ground truth.
+- ``distractors``: no rain; static scenes with objects that are in one view only (people, cars,
+  blowing leaves: synth/transients.py), the setting the robust baselines (robust-nerf,
+  robust-3dgs, desplat) were built for: each must beat its plain field there. The cpu set's
+  size, views and budgets; the tables' "in rain" pixels are the transients' there.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ from rainyscape.errors import ConfigError
 
 # light, medium, heavy, slanted 30 deg by wind, two directions (docs/simulator.md).
 CPU_PRESETS = ("yard", "crossroad", "plaza", "street", "bridge")
+# people, cars and pedestrians, leaves and a passer-by (synth/presets.py, no rain)
+DISTRACTOR_PRESETS = ("plaza-crowd", "crossroad-traffic", "yard-leaves")
 
 
 @dataclass(frozen=True)
@@ -48,6 +54,10 @@ SCENE_SETS: dict[str, SceneSet] = {s.name: s for s in [
              iters={"grid": 18000, "gaussians": 30000},
              description="the same presets at the paper's size (5 x 10 views, 512 px) and step counts "
                          "(18k for NeRF, 30k for 3DGS): a GPU run"),
+    SceneSet("distractors", DISTRACTOR_PRESETS, width=128, height=128, rows=3, cols=6,
+             iters={"grid": 1500, "gaussians": 1500},
+             description="three rain-free scenes with transient people, cars and leaves, one set per view, "
+                         "at the cpu set's size and budgets: where the robust baselines must beat their plain fields"),
     SceneSet("real", (), width=0, height=0, rows=0, cols=0,
              iters={"grid": 1500, "gaussians": 1500}, captures=True,
              description="real captures (captures=FOLDER) at about 240 px with simulated rain in their own "

@@ -71,7 +71,10 @@ class Trainer:
         self.step = 0
         self.groups = self._param_groups()
         self.optimizers = self._make_optimizers()
-        self.callbacks = list(self.pipeline.field.callbacks())
+        # the field's hooks first, then the heads' and the loss terms' (checkpoints keep this order)
+        self.callbacks = [*self.pipeline.field.callbacks(),
+                          *(cb for head in self.pipeline.heads.values() for cb in head.callbacks()),
+                          *(cb for _, term in self.pipeline.losses.values() for cb in term.callbacks())]
         self.batch_sizes = {name: batch_count(p.patches, p.patch_size, self.scene.width, self.scene.height)
                             for name, p in pipeline.config.phases.items()}
         self.last_save = time.monotonic()
@@ -130,8 +133,12 @@ class Trainer:
         total, values = compute_losses(terms, ctx)
         # what the terms measured on this batch (the latent updates below evaluate them again)
         measured = {f"{key}.{mk}": mv for key, (_, term) in terms.items() for mk, mv in term.metrics.items()}
+        # the render with every layer laid over it (what the input should look like)
+        fit = out.rgb.detach()
+        for head in heads:
+            fit = head.composite(fit, layers[head.layer].detach())
         # the field's own losses fit what the layers leave of the input
-        field_target = target if not layers else (target - sum(layers.values())).detach()
+        field_target = target if not layers else (target - (fit - out.rgb.detach())).detach()
         for key, value in self.pipeline.field.extra_losses(out, field_target).items():
             total = total + value
             values[f"field.{key}"] = float(value.detach())
@@ -149,7 +156,6 @@ class Trainer:
         for cb in self.callbacks:
             cb.after_step(state)
         self.step += 1
-        fit = out.rgb.detach() + sum(v.detach() for v in layers.values())
         record = {"step": self.step, "phase": name, "loss": float(total.detach()), "terms": values,
                   "psnr_input": float(psnr(fit.clamp(0, 1), target))}
         if measured:

@@ -77,19 +77,35 @@ def render_image(pipeline: Pipeline, index: int) -> Tensor:
 
 
 @torch.no_grad()
-def predict_rain(pipeline: Pipeline, index: int, tile: int = 128) -> Tensor:
-    """Predicted rain layer (3, H, W) of view ``index``, computed tile by tile (bounded memory)."""
+def predict_layer(pipeline: Pipeline, index: int, tile: int = 128) -> Tensor:
+    """The rain head's own prediction (C, H, W) for view ``index``, computed tile by tile
+    (bounded memory)."""
     head = pipeline.rain_head
     head.eval()
     h, w = pipeline.scene.height, pipeline.scene.width
-    out = torch.zeros(3, h, w, device=pipeline.device)
+    out = None
     ids = torch.tensor([index], device=pipeline.device)
     for y in range(0, h, tile):
         for x in range(0, w, tile):
             th, tw = min(tile, h - y), min(tile, w - x)
             win = Window(torch.tensor([x]), torch.tensor([y]), tw, th)
-            out[:, y:y + th, x:x + tw] = head(ids, win)[0]
+            part = head(ids, win)[0]
+            if out is None:
+                out = torch.zeros(part.shape[0], h, w, device=pipeline.device)
+            out[:, y:y + th, x:x + tw] = part
     return out
+
+
+@torch.no_grad()
+def predict_rain(pipeline: Pipeline, index: int, rendered: Tensor | None = None, tile: int = 128) -> Tensor:
+    """Predicted rain layer (3, H, W) of view ``index``: what the head's layer adds to the
+    render ``rendered`` (3, H, W; rendered here when not given). For an additive head that is
+    its prediction itself; an occluding (colour, alpha) layer adds its colour minus what it
+    hides."""
+    layer = predict_layer(pipeline, index, tile)
+    if rendered is None:
+        rendered = render_image(pipeline, index)
+    return (pipeline.rain_head.composite(rendered[None], layer[None]) - rendered[None])[0]
 
 
 @dataclass
@@ -120,7 +136,7 @@ def view_images(pipeline: Pipeline, index: int) -> ViewImages:
     if scene.rain_layers is not None:
         v.true_rain = scene.rain_layers[index].to(dev).permute(2, 0, 1).float()
     if split == "train" and pipeline.rain_head is not None:
-        v.rain = predict_rain(pipeline, index)
+        v.rain = predict_rain(pipeline, index, v.rendered)
         for key, post in pipeline.postprocess.items():
             v.post[key] = post(v.rendered, v.rain, v.rainy).clamp(0, 1)
     return v

@@ -23,6 +23,9 @@ class Preset:
     height: int = 256
     label_db: float = 26.0  # the rain strength it is made for: rainy-vs-clean PSNR
     level: str = "medium"
+    # per-view transient objects instead of rain (synth/transients.py: people, cars, leaves);
+    # a preset with transients has no rain (density 0)
+    transients: dict = field(default_factory=dict)
 
 
 PRESETS: dict[str, Preset] = {p.name: p for p in [
@@ -46,4 +49,13 @@ PRESETS: dict[str, Preset] = {p.name: p for p in [
            {"density": 2.5, "rain_rate_mm_h": 50.0, "wind_deg": 6.0, "wind_azimuth_deg": 200.0,
             "exposure_s": 1.0 / 20.0},
            label_db=21.0, level="heavy"),
+    # Distractors, not rain: a static scene with objects in one view only (bench scenes=distractors).
+    Preset("plaza-crowd", "plaza", "the plaza on a dry day with people walking through every view",
+           {"density": 0.0}, transients={"people": 16, "far_m": 20.0}, label_db=0.0, level="distractors: people"),
+    Preset("crossroad-traffic", "crossroad", "the crossroad on a dry day with cars and pedestrians passing",
+           {"density": 0.0}, transients={"cars": 3, "people": 6}, label_db=0.0, level="distractors: cars, people"),
+    Preset("yard-leaves", "yard", "the yard on a dry, windy day: leaves blowing past the lens, a passer-by",
+           {"density": 0.0}, transients={"leaves": 40, "people": 2}, label_db=0.0, level="distractors: leaves"),
 ]}
+
+DISTRACTOR_PRESETS = tuple(name for name, p in PRESETS.items() if p.transients)

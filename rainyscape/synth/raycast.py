@@ -61,6 +61,8 @@ class ViewRender:
     normal: np.ndarray  # (H, W, 3) world normal of the centre ray's surface, facing the camera (0: sky)
     sub_depth: np.ndarray  # (H, W, S) z-depths of the base samples (inf: sky)
     edge_fraction: float = 0.0  # share of pixels re-rendered with the edge samples
+    edges: np.ndarray | None = None  # (H, W) the pixels re-rendered with the edge samples ...
+    edge_samples: int = 0  # ... with this many per axis
 
 
 @dataclass
@@ -236,12 +238,15 @@ class SceneRenderer:
 
     def render(self, cameras: Cameras, index: int, samples: int | None = None,
                edge_factor: int = EDGE_FACTOR, seed: int = 0, prefilter: bool = True,
-               window: tuple[int, int, int, int] | None = None) -> ViewRender:
+               window: tuple[int, int, int, int] | None = None, like: ViewRender | None = None) -> ViewRender:
         """Render view ``index``: ``samples`` x ``samples`` prefiltered samples per pixel
         (default: :func:`default_samples` of the image size), and ``edge_factor * samples``
         squared (or more, see :func:`edge_samples`) jittered samples per pixel around edges.
         ``prefilter=False`` point-samples the textures (for measurements of the renderer);
-        ``window=(x0, y0, x1, y1)`` renders only those pixels (a crop of the view)."""
+        ``window=(x0, y0, x1, y1)`` renders only those pixels (a crop of the view).
+        ``like``: a render of the same view (same size, samples and seed) of a scene this one
+        adds parts to; its edge pixels get the very same edge samples here (new edge pixels
+        come after them), so every pixel the added parts leave alone renders identically."""
         cam = Camera.of(cameras, index)
         x0, y0, x1, y1 = window if window is not None else (0, 0, cam.width, cam.height)
         h, w = y1 - y0, x1 - x0
@@ -261,8 +266,14 @@ class SceneRenderer:
         sub_depth = base.z.reshape(h + 2, w + 2, n * n)[1:-1, 1:-1]
         normals = base.normal.reshape(h + 2, w + 2, n * n, 3)[1:-1, 1:-1]
         m = edge_samples(n, int(edge_factor), float(edge.mean()))
-        if m > n and edge.any():
-            pi, pj = np.nonzero(edge)
+        pi, pj = np.nonzero(edge)
+        if like is not None:  # the other render's edge pixels first, in its order, then new ones
+            m = like.edge_samples
+            old_i, old_j = np.nonzero(like.edges)
+            new_i, new_j = np.nonzero(edge & ~like.edges)
+            pi, pj = np.concatenate([old_i, new_i]), np.concatenate([old_j, new_j])
+            edge = edge | like.edges
+        if m > n and len(pi):
             rng = np.random.default_rng([int(seed), int(index), m])
             cy, cx = np.meshgrid((np.arange(m)) / m, (np.arange(m)) / m, indexing="ij")
             jit = rng.random((len(pi), m * m, 2)) / m
@@ -277,7 +288,7 @@ class SceneRenderer:
             normal = normals[:, :, centre]
         else:
             depth, normal = self.centre_depth(cam, (x0, y0, x1, y1))
-        return ViewRender(np.clip(rgb, 0.0, 1.0), depth, normal, sub_depth, float(edge.mean()))
+        return ViewRender(np.clip(rgb, 0.0, 1.0), depth, normal, sub_depth, float(edge.mean()), edge, m)
 
     def _edges(self, base: Shaded, h: int, w: int, n: int) -> np.ndarray:
         """Pixels to supersample: both pixels holding two neighbouring base samples that see a

@@ -6,7 +6,7 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, fields, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,9 +20,10 @@ from rainyscape.synth import layout
 from rainyscape.synth.presets import PRESETS
 from rainyscape.synth.params import SIM_VERSION, RainConfig
 from rainyscape.synth.rain import make_drop_field, render_rain
-from rainyscape.synth.raycast import EDGE_FACTOR, SceneRenderer, ViewRender, default_samples
+from rainyscape.synth.raycast import EDGE_FACTOR, Camera, SceneRenderer, ViewRender, default_samples
 from rainyscape.synth.rig import make_rig
 from rainyscape.synth.scenes import build_scene
+from rainyscape.synth.transients import TransientConfig, transient_mask, view_transients
 
 MODES = ("static", "dynamic")
 TRAJECTORIES = ("sphere", "video")
@@ -116,6 +117,7 @@ class Simulation:
         self.rig = make_rig(self.spec.rig, job.rows, job.cols, job.width, job.height, job.trajectory)
         self.cameras = self.rig.cameras()
         self.renderer = SceneRenderer(self.spec)
+        self.transients = TransientConfig.of(p.transients)
         self.look_at = np.asarray(self.spec.rig.look_at, float)
         self.box = drop_box(self.rig.positions, self.look_at, self.spec.rig.radius)
         self.drops = make_drop_field(*self.box, job.rain, job.seed + 1000)
@@ -137,6 +139,8 @@ class Simulation:
     def render_view(self, k: int) -> dict:
         """Render view ``k``, write its files, return its rainy-vs-clean metrics."""
         view = self.render_clean(k)
+        if self.transients.any:
+            return self.render_transients(k, view)
         cfg = self.job.rain
         rain_layer = render_rain(self.drops, self.cameras, k, view.sub_depth, self.times[k], cfg, self.drop_rgb)
         background = view.rgb
@@ -153,6 +157,29 @@ class Simulation:
         return {"name": f"{self.names[k]}.png", "psnr": round(p_db, 3), "ssim": round(s, 4),
                 "rain_coverage": round(coverage, 4), "rain_mean_share": round(mean_share, 4),
                 "streaks": rain_layer.streaks, "edge_pixels": round(view.edge_fraction, 4), "time_s": self.times[k]}
+
+
+    def render_transients(self, k: int, view: ViewRender) -> dict:
+        """View ``k`` with its own transient objects in place of rain: the scene rendered again
+        with them, with the clean view's samples (so the pixels they leave alone are the clean
+        view's, exactly). The rain layer holds them and their shadows, fully opaque: rainy =
+        clean (1 - A) + C A with A = 1 where the two renders differ, C the view there."""
+        extra = view_transients(self.transients, Camera.of(self.cameras, k), self.job.seed, k)
+        observed = view.rgb
+        if extra:
+            spec = replace(self.spec, parts=self.spec.parts + extra)
+            observed = SceneRenderer(spec).render(self.cameras, k, seed=self.job.seed, like=view).rgb
+        mask = transient_mask(observed, view.rgb)
+        shown = np.where(mask[..., None], observed, view.rgb)
+        clean8, rainy8 = layout.to_uint8(view.rgb), layout.to_uint8(shown)
+        alpha = mask.astype(np.float64)
+        layout.write_view(Path(self.job.out), self.names[k], rainy8, clean8, view.depth, alpha,
+                          shown * alpha[..., None])
+        p_db, s = rain_strength(rainy8, clean8)
+        return {"name": f"{self.names[k]}.png", "psnr": round(p_db, 3), "ssim": round(s, 4),
+                "rain_coverage": round(float(mask.mean()), 4), "rain_mean_share": 0.0,
+                "streaks": 0, "transient_parts": len(extra), "edge_pixels": round(view.edge_fraction, 4),
+                "time_s": self.times[k]}
 
 
 def haze_transmission(sub_depth: np.ndarray, haze: float) -> np.ndarray:
@@ -268,12 +295,15 @@ def _simulate(out: Path, preset: str, rows: int, cols: int, width: int, height: 
         "mode": mode, "trajectory": trajectory, "rows": rows, "cols": cols, "width": width,
         "height": height, "seed": seed, "units": "metres, Y up (Maya)",
         "rain": rain.to_dict(), "drops": len(sim.drops), "drop_box": [lo.tolist(), hi.tolist()],
+        "transients": asdict(sim.transients) if sim.transients.any else None,
         "look_at": sim.look_at.tolist(), "sun_dir": list(sim.spec.sun_dir),
         "depth": {"folder": layout.DEPTH_DIR, "key": layout.DEPTH_KEY,
                   "kind": "z-depth along the optical axis of the pixel-centre ray",
                   "units": "world", "sky": "inf"},
         "rain_layer": {"folder": layout.RAIN_DIR, "format": "RGBA png: RGB rain colour C, A coverage; "
-                       "rainy = clean * (1 - A) + C * A", "contents": "streaks only"},
+                       "rainy = clean * (1 - A) + C * A",
+                       "contents": ("transient objects, their shadows and edges (A = 1 there), no rain"
+                                    if sim.transients.any else "streaks only")},
         "haze": ({"folder": layout.HAZE_DIR, "format": "grey png: transmission T; rainy = (clean * T + fog * "
                   "(1 - T)) * (1 - A) + C * A", "fog_rgb": sim.fog_rgb.tolist(), "haze": rain.haze}
                  if rain.haze > 0 else None),
