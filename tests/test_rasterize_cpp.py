@@ -209,6 +209,23 @@ def test_threads_and_instruction_sets_agree(monkeypatch):
 
 
 @needs_cpp
+def test_gradients_repeat_bit_for_bit_on_several_threads():
+    """With several threads the gradients are the same on every call (tiles go to workers by a
+    fixed rule, so each worker's float sums run in one order): what makes a resumed run
+    match an uninterrupted one. Many tiles and few threads make a dynamic hand-out differ."""
+    params, viewmats, ks = scene(300, seed=9, huge=3)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(3)
+        runs = [render(params, viewmats, ks, "cpp")[1] for _ in range(4)]
+    finally:
+        torch.set_num_threads(threads)
+    for grads in runs[1:]:
+        for name, mine, first in zip(("means", "quats", "scales", "opacities", "colors"), grads, runs[0]):
+            assert torch.equal(mine, first), name
+
+
+@needs_cpp
 def test_ellipse_binning_lists_fewer_pairs_than_boxes():
     """Tiles are listed where the alpha > 1/255 ellipse reaches, not where its bounding box
     does: slender, tilted Gaussians touch far fewer tiles (and the images still agree)."""

@@ -25,7 +25,7 @@ def test_robust_nerf_is_nerf_with_robustnerfs_loss_on_16px_patches():
     fit, plain = robust.phases["fit"], base.phases["fit"]
     assert robust.trainer.max_iters == base.trainer.max_iters and list(robust.phases) == ["fit"]
     assert fit.patch_size == 16 and _rays(fit) == _rays(plain)  # nerf's rays per step, in patches
-    assert cell_budget(robust, 64, 64).same_as(cell_budget(base, 64, 64))
+    assert cell_budget(robust, 64, 64, 16).same_as(cell_budget(base, 64, 64, 16))
     gpu, gpu_base = config.method_config("robust-nerf", ["profile=gpu"]), config.method_config("nerf", ["profile=gpu"])
     assert gpu.field == gpu_base.field and _rays(gpu.phases["fit"]) == _rays(gpu_base.phases["fit"])
 
@@ -47,7 +47,7 @@ def test_desplat_is_3dgs_with_per_view_distractor_gaussians():
     base, d = config.method_config("3dgs"), config.method_config("desplat")
     assert d.field == base.field and d.phases["fit"].heads == ("rain_head",)
     assert d.rain_head.name == "distractor-gaussians" and d.losses["desplat"].name == "desplat"
-    assert cell_budget(d, 64, 64).same_as(cell_budget(base, 64, 64))
+    assert cell_budget(d, 64, 64, 16).same_as(cell_budget(base, 64, 64, 16))
 
 
 def _train(method, tmp_path, scene, *extra):
@@ -93,9 +93,10 @@ def test_desplat_trains_its_distractors_and_evaluates_the_static_scene(tmp_path,
     assert any(k.startswith("sets.") for k in state["models"]["rain_head"])
 
 
-@pytest.mark.parametrize("method", ["robust-3dgs", "desplat"])
-def test_the_peers_resume_exactly(tmp_path, tiny_scene_dir, tiny_scene, method):
-    """Stopped at step 3 and resumed, a run ends where an uninterrupted one does (the running
+@pytest.mark.parametrize("method", ["3dgs", "robust-3dgs", "desplat"])
+def test_the_gaussian_methods_resume_exactly(tmp_path, tiny_scene_dir, tiny_scene, method):
+    """Stopped at step 3 and resumed, a run ends where an uninterrupted one does (the C++
+    rasteriser's multi-threaded gradient sums, the running
     histogram, the Bernoulli draws, the SH reset, the per-view sets and their densification)."""
     from rainyscape.engine.run import load_run
     from rainyscape.workflow import train_and_evaluate

@@ -265,7 +265,8 @@ void backward_channels(const float* opacities, int channels_in, const Binning& b
   const int64_t stride = 6 + channels;  // per Gaussian: means 2, conics 3, opacity 1, features
   // Each worker adds into its own array of (rank, stride) gradients (no atomics; one or two
   // cache lines per Gaussian), summed into the outputs by row at the end; fewer workers
-  // when those would take more than 1 GiB.
+  // when those would take more than 1 GiB. Tiles go to workers by a fixed rule, so the sums
+  // (float additions in a fixed order) are the same on every run: resume is exact.
   const int64_t per_worker = std::max<int64_t>(1, v * stride * int64_t{sizeof(float)});
   const int workers = static_cast<int>(std::max<int64_t>(
       1, std::min<int64_t>({int64_t{std::max(1, threads)}, tiles, (int64_t{1} << 30) / per_worker})));
@@ -371,7 +372,7 @@ void backward_channels(const float* opacities, int channels_in, const Binning& b
       gi[5] += lane_sum(l_op);
       for (int d = 0; d < channels; ++d) gi[6 + d] += lane_sum(l_f[d]);
     }
-  });
+  }, /*fixed=*/true);
   const int64_t block = 4096;
   parallel_for((v + block - 1) / block, workers, [&](int64_t blk, int) {
     for (int64_t i = blk * block; i < std::min(v, (blk + 1) * block); ++i) {
