@@ -158,6 +158,9 @@ class PhaseConfig:
     heads: tuple[str, ...] = ()  # pipeline heads predicting image layers here (e.g. rain_head)
     field_lr_scale: float = bounded(1.0, 0.0, 1000.0)  # the field's scheduled lr times this ...
     field_lr: float | None = bounded(None, 0.0, 10.0)  # ... or this fixed lr (the paper's NeRF: 1e-6)
+    # each model's gradient norm clipped to this before its step (0: no clipping; the authors'
+    # code clips at 1 in its 3DGS joint phase)
+    grad_clip: float = bounded(0.0, 0.0, 1e6)
 
 
 @dataclass

@@ -147,6 +147,9 @@ class Trainer:
         total.backward()
         for cb in self.callbacks:
             cb.after_backward(state, out)
+        if phase.grad_clip > 0:
+            for groups in self.groups.values():
+                torch.nn.utils.clip_grad_norm_([p for g in groups for p in g.params], phase.grad_clip)
         for opt in self.optimizers.values():
             opt.step()
         for head in heads:
