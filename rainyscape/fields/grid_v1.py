@@ -1,0 +1,297 @@
+"""The fast CPU field: explicit grids + tiny MLP, grown coarse-to-fine.
+
+Space is contracted into the cube [-2, 2]^3: the scene box maps to [-1, 1]^3 and everything
+out to infinity to the shell around it. A density grid (TensoRF vector-matrix factorised by
+default, or dense) and a TensoRF-style factorised colour grid for a
+tiny MLP cover that cube, with per-axis resolutions in proportion to the box so voxels are
+about cubic in the world.
+
+Samples are evenly spaced (in voxels) up to where the ray leaves the scene box, then evenly
+in inverse distance out to ``far`` (evenly in the contracted coordinate). An occupancy grid
+skips empty space; colour is computed only where a sample's weight matters. Light that
+is left at the last sample ends there (as in NeRF): far content and sky live on the shell.
+
+The grids start coarse and grow on a schedule: an explicit grid has no spectral bias of its
+own, so its resolution is what makes it fit low frequencies first (the paper's prior).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from rainyscape.components import Callback, ParamGroup, TrainState
+from rainyscape.config.schema import bounded
+from rainyscape.errors import ConfigError
+from rainyscape.fields.contraction import contract, contraction_stretch
+from rainyscape.fields.encoding import encoded_dim, positional_encoding
+from rainyscape.fields.feature_grids import DenseGrid, VMGrid, resample
+from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
+from rainyscape.fields.optim_state import replace_adam_param
+from rainyscape.fields.ray_field import RayField
+from rainyscape.fields.rendering import FAR_DELTA, compositing_weights, sample_deltas
+from rainyscape.fields.sampling import ray_box_intersection
+from rainyscape.scene import SceneData
+
+DENSITY_GROUP, COLOR_GROUP, NETWORK_GROUP = "field_density", "field_color", "field_network"
+
+
+def growth_resolution(step: int, max_iters: int, initial: int, final: int,
+                      growth_at: tuple[float, ...]) -> int:
+    """Grid resolution at ``step``: ``initial``, then after each fraction in ``growth_at`` of
+    the run one more of len(growth_at) steps evenly spaced in log resolution up to ``final``."""
+    if not growth_at:
+        return final
+    done = sum(step >= round(f * max_iters) for f in growth_at)
+    level = done / len(growth_at)
+    return int(round(math.exp(math.log(initial) * (1 - level) + math.log(final) * level)))
+
+
+def axis_sizes(resolution: int, extent: Tensor) -> tuple[int, int, int]:
+    """Lattice points per axis: ``resolution``^3 in all, shared in proportion to ``extent``."""
+    ratio = extent / extent.prod() ** (1.0 / 3.0)
+    return tuple(max(2, int(round(resolution * float(r)))) for r in ratio)
+
+
+class ColorNet(nn.Module):
+    """Colour features + view direction -> rgb: one small hidden layer."""
+
+    def __init__(self, feature_dim: int, view_freqs: int, hidden: int):
+        super().__init__()
+        self.view_freqs = view_freqs
+        self.mlp = nn.Sequential(nn.Linear(feature_dim + encoded_dim(3, view_freqs), hidden),
+                                 nn.ReLU(), nn.Linear(hidden, 3))
+
+    def forward(self, features: Tensor, viewdirs: Tensor) -> Tensor:
+        x = torch.cat([features, positional_encoding(viewdirs, self.view_freqs)], -1)
+        return torch.sigmoid(self.mlp(x))
+
+
+class GridField(RayField):
+    """Fast field: explicit density + factorised colour grids, tiny MLP, coarse-to-fine growth."""
+
+    description = "fast grid field (CPU/GPU): explicit grids + tiny MLP, occupancy grid, coarse-to-fine"
+
+    @dataclass
+    class Config:
+        resolution_init: int = bounded(16, 2)  # cube root of the lattice size of the contracted cube at the start ...
+        resolution_final: int = bounded(128, 2)  # ... and after the last growth
+        growth_at: tuple[float, ...] = bounded((0.05, 0.1, 0.2, 0.3, 0.4), 0.0, 1.0)  # fractions of the run where it grows
+        # vm: measured 1.1 dB better after 300 steps and twice as fast per step as dense (docs/benchmarks.md)
+        density_grid: Literal["dense", "vm"] = "vm"
+        density_components: int = bounded(4, 1)  # vm density: components per mode
+        color_components: int = bounded(8, 1)  # factorised colour grid: components per mode (x3 modes)
+        feature_dim: int = bounded(16, 1)  # colour features fed to the MLP
+        hidden: int = bounded(32, 1)  # MLP width
+        view_freqs: int = bounded(2, 0)  # positional-encoding frequencies of the view direction
+        step_ratio: float = bounded(0.5, above=0.0)  # sample spacing in voxels
+        density_scale: float = bounded(25.0, above=0.0)  # sigma = scale * softplus(grid + shift)
+        density_shift: float = -5.0  # a zero grid: a light haze the first steps carve
+        box_scale: float = bounded(1.0, above=0.0)  # the uncontracted region: the scene box scaled about its centre
+        # last-sample: the last sample takes the light that is left (NeRF), so far content and
+        # sky live on the outer shell; a learned constant would rather explain the commonest
+        # surface colour (a grey road) and drain its density.
+        background: Literal["last-sample", "black", "white"] = "last-sample"
+        occupancy_resolution: int = bounded(64, 2)
+        occupancy_from: float = bounded(0.2, 0.0, 1.0)  # fraction of the run before the first occupancy update
+        occupancy_every: int = bounded(25, 1)  # steps between updates
+        occupancy_threshold: float = bounded(0.01, 0.0, 1.0)  # opacity of one step below which a cell is empty
+        weight_threshold: float = bounded(1e-4, 0.0, 1.0)  # colour is computed only where a sample's weight reaches this
+        transmittance_threshold: float = bounded(1e-4, 0.0, 1.0)  # samples behind this much opacity get no gradient
+        lr_density: float = bounded(0.1, 0.0)
+        lr_color: float = bounded(0.1, 0.0)
+        lr_network: float = bounded(1e-3, 0.0)
+        lr_decay: float = bounded(0.1, above=0.0)  # every lr x lr_decay per lr_decay_steps (exponentially)
+        lr_decay_steps: int = bounded(3000, 0)
+        chunk: int = bounded(8192, 1)  # rays per chunk when rendering without gradients
+        train_chunk: int = bounded(0, 0)  # rays per gradient-checkpointed chunk in training (0: one pass)
+
+    def __init__(self, config: Config, scene: SceneData):
+        super().__init__()
+        c = self.config = config
+        if not 2 <= c.resolution_init <= c.resolution_final:
+            raise ConfigError(f"field: need 2 <= resolution_init <= resolution_final, got "
+                              f"{c.resolution_init}, {c.resolution_final}")
+        if any(not 0 <= f <= 1 for f in c.growth_at):
+            raise ConfigError(f"field.growth_at: fractions of the run in [0, 1], got {c.growth_at}")
+        if c.step_ratio <= 0 or c.box_scale <= 0:
+            raise ConfigError("field.step_ratio and field.box_scale must be > 0")
+        if not 0 < scene.near < scene.far:
+            raise ConfigError(f"scene {scene.name}: need 0 < near < far, got {scene.near}, {scene.far}")
+        self.eval_chunk, self.train_chunk = c.chunk, c.train_chunk
+        self.near, self.far = float(scene.near), float(scene.far)
+        box = scene.scene_box.float()
+        center, half = 0.5 * (box[0] + box[1]), (0.5 * (box[1] - box[0]) * c.box_scale).clamp_min(1e-3)
+        self.register_buffer("box_center", center, persistent=False)
+        self.register_buffer("box_half", half, persistent=False)
+        self.register_buffer("grid_resolution", torch.tensor(c.resolution_init))
+        sizes = axis_sizes(c.resolution_init, half)
+        self.density_grid = (DenseGrid(1, sizes) if c.density_grid == "dense"
+                             else VMGrid(c.density_components, sizes))
+        self.color_grid = VMGrid(c.color_components, sizes)
+        self.basis = nn.Linear(self.color_grid.channels, c.feature_dim, bias=False)
+        self.color_net = ColorNet(c.feature_dim, c.view_freqs, c.hidden)
+        self.occupancy = OccupancyGrid(c.occupancy_resolution)
+
+    # ------------------------------------------------------------------ geometry
+
+    @property
+    def resolution(self) -> int:
+        return int(self.grid_resolution)
+
+    def stats(self) -> dict[str, float]:
+        """The grids' resolution (cube root of the lattice size) and the occupied share of
+        the occupancy grid."""
+        return {"grid_resolution": self.resolution, "occupied_fraction": round(self.occupancy.fraction(), 4)}
+
+    def step_size(self) -> float:
+        """Sample spacing in world units inside the scene box."""
+        sizes = torch.tensor(axis_sizes(self.resolution, self.box_half.cpu()), dtype=torch.float32)
+        voxel = 4.0 * self.box_half.cpu() / (sizes - 1)  # the lattice spans the contracted [-2, 2]
+        return self.config.step_ratio * float(voxel.mean())
+
+    def _sigma(self, grid_points: Tensor) -> Tensor:
+        """Density at points of the grids' [-1, 1]^3 (the contracted cube halved)."""
+        raw = self.density_grid(grid_points).sum(-1)
+        return self.config.density_scale * F.softplus(raw + self.config.density_shift)
+
+    def density(self, points: Tensor) -> Tensor:
+        """Volume density (P,) at world points (P, 3) of the normalised scene (for export)."""
+        return self._sigma(contract((points - self.box_center) / self.box_half) / 2.0)
+
+    def _samples(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+        """Sample distances (R, N) and which are real (R, N), for box-normalised rays."""
+        step = self.step_size()
+        unit_box = torch.tensor([[-1.0] * 3, [1.0] * 3], device=o.device)
+        entry, exit_ = ray_box_intersection(o, d, unit_box)
+        # Past the box exit (or the closest approach to it, for rays that miss) samples go
+        # evenly in inverse distance: that is evenly in the contracted coordinate.
+        closest = -(o * d).sum(-1) / (d * d).sum(-1)
+        split = torch.where(exit_ > entry, exit_, closest).clamp(self.near, self.far)
+        n_lin = max(1, math.ceil(float((split.max() - self.near) / step)))
+        n_far = max(1, math.ceil((self.resolution - 1) / 4.0 / self.config.step_ratio))
+        shape = (o.shape[0], 1)
+        jitter = (torch.rand(shape, device=o.device) if self.training
+                  else torch.full(shape, 0.5, device=o.device))
+        t_lin = self.near + (torch.arange(n_lin, device=o.device) + jitter) * step
+        valid = t_lin < split[:, None]
+        s = (torch.arange(n_far, device=o.device) + jitter) / n_far
+        t_far = 1.0 / ((1.0 - s) / split[:, None] + s / self.far)
+        # Padding sits at the first far sample: zero-length intervals, so a ray renders the
+        # same whatever the longest ray of its batch (chunking does not change images).
+        t_lin = torch.where(valid, t_lin, t_far[:, :1])
+        t = torch.cat([t_lin, t_far], -1)
+        return t, torch.cat([valid, torch.ones_like(t_far, dtype=torch.bool)], -1)
+
+    # ----------------------------------------------------------------- rendering
+
+    def render_rays(self, origins: Tensor, directions: Tensor, z_scale: Tensor) -> dict[str, Tensor]:
+        # Distances stay in world units; positions are measured in half box sizes.
+        o = (origins - self.box_center) / self.box_half
+        d = directions / self.box_half
+        t, valid = self._samples(o, d)
+        last = FAR_DELTA if self.config.background == "last-sample" else 0.0
+        deltas = sample_deltas(t, last=last).clamp_min(0.0)
+        pts = contract(o[:, None] + t[..., None] * d[:, None])  # (R, N, 3) in [-2, 2]
+        live = valid & self.occupancy.lookup(pts)
+        if self.config.background == "last-sample":
+            live[:, -1] = True  # it must stay able to take the light that is left
+        idx = live.nonzero(as_tuple=True)
+        zeros = torch.zeros_like(t)
+        with torch.no_grad():  # march without gradients first: what light reaches each sample
+            sigma = zeros.index_put(idx, self._sigma(pts[idx] / 2.0))
+            _, transmittance = compositing_weights(sigma, deltas)
+        if torch.is_grad_enabled():
+            # Only samples that light still reaches get gradients (early ray termination).
+            idx = (live & (transmittance > self.config.transmittance_threshold)).nonzero(as_tuple=True)
+            sigma = zeros.index_put(idx, self._sigma(pts[idx] / 2.0))
+        weights, _ = compositing_weights(sigma, deltas)
+        # Colour only where it shows; composited sparsely, straight into the rays.
+        shade = (weights.detach() >= self.config.weight_threshold).nonzero(as_tuple=True)
+        feats = self.basis(self.color_grid(pts[shade] / 2.0))
+        rgb_samples = self.color_net(feats, directions[shade[0]])
+        rgb = torch.zeros_like(origins).index_add(0, shade[0], weights[shade][:, None] * rgb_samples)
+        acc = weights.sum(-1)
+        rest = (1.0 - acc).clamp_min(0.0)
+        if self.config.background == "white":
+            rgb = rgb + rest[:, None]
+        depth = ((weights * t).sum(-1) + rest * self.far) * z_scale
+        return {"rgb": rgb, "depth": depth, "acc": acc}
+
+    # -------------------------------------------------------------- optimisation
+
+    def param_groups(self) -> list[ParamGroup]:
+        c = self.config
+        color = self.color_grid.factors()
+        network = list(self.basis.parameters()) + list(self.color_net.parameters())
+
+        def group(name: str, params: list, lr: float) -> ParamGroup:
+            # A tiny eps (as instant-ngp): grid gradients are tiny where rays barely reach,
+            # and Adam's default 1e-8 would freeze those voxels instead of normalising them.
+            return ParamGroup(name, params, lr=lr, lr_decay=c.lr_decay,
+                              lr_decay_steps=c.lr_decay_steps, eps=1e-15)
+
+        return [group(DENSITY_GROUP, self.density_grid.factors(), c.lr_density),
+                group(COLOR_GROUP, color, c.lr_color),
+                group(NETWORK_GROUP, network, c.lr_network)]
+
+    def callbacks(self) -> list[Callback]:
+        return [GridGrowth(self), OccupancyUpdate(self)]
+
+    @torch.no_grad()
+    def grow(self, resolution: int, optimizers: dict[str, torch.optim.Optimizer] | None = None) -> None:
+        """Resample the grids to ``resolution``; Adam's moments are resampled alike."""
+        sizes = axis_sizes(resolution, self.box_half.cpu())
+        optimizers = optimizers or {}
+        for name, grid in ((DENSITY_GROUP, self.density_grid), (COLOR_GROUP, self.color_grid)):
+            for old, new in grid.resize(sizes):
+                if name in optimizers:
+                    replace_adam_param(optimizers[name], old, new, lambda m, n=new: resample(m, n.shape[2:]))
+        self.grid_resolution.fill_(resolution)
+
+    @torch.no_grad()
+    def update_occupancy(self) -> None:
+        """Mark cells whose density would make one marching step at least threshold-opaque."""
+        centers = cell_centers(self.occupancy.resolution, device=self.box_half.device)
+        sigma = self._sigma(centers.reshape(-1, 3) / 2.0).reshape(centers.shape[:-1])
+        alpha = 1.0 - torch.exp(-sigma * self.step_size() * contraction_stretch(centers))
+        self.occupancy.set(occupied_cells(alpha, self.config.occupancy_threshold))
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        # A checkpoint may hold grown grids: grow to its resolution before copying.
+        saved = state_dict.get("grid_resolution")
+        if saved is not None and int(saved) != self.resolution:
+            self.grow(int(saved))
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+
+class GridGrowth(Callback):
+    """Grows the grids on the schedule; the resolution follows from the step, so resuming works."""
+
+    def __init__(self, field: GridField):
+        self.field = field
+
+    def before_step(self, state: TrainState) -> None:
+        c = self.field.config
+        target = growth_resolution(state.step, state.max_iters, c.resolution_init,
+                                   c.resolution_final, tuple(c.growth_at))
+        if target != self.field.resolution:
+            self.field.grow(target, state.optimizers)
+
+
+class OccupancyUpdate(Callback):
+    """Refreshes the occupancy grid every ``occupancy_every`` steps once the field has formed."""
+
+    def __init__(self, field: GridField):
+        self.field = field
+
+    def before_step(self, state: TrainState) -> None:
+        c = self.field.config
+        start = round(c.occupancy_from * state.max_iters)
+        if state.step >= start and (state.step - start) % max(1, c.occupancy_every) == 0:
+            self.field.update_occupancy()
