@@ -32,7 +32,7 @@ def main(argv: list[str]) -> int:
                                        "trainer.checkpoint_every=0", "trainer.eval_views=6", *overrides],
                        Path("outputs/benchmarks/field_settings") / tag)
     seconds = sum(timed_steps(trainer, iters))
-    scores = {k: round(v, 2) for k, v in quick_eval(trainer.p, trainer.cfg.eval_views).items()}
+    scores = {k: round(v, 2) for k, v in quick_eval(trainer.pipeline, trainer.cfg.eval_views).items()}
     print(tag, " ".join(overrides), f"{seconds:.0f}s", scores, flush=True)
     return 0
 

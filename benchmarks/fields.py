@@ -41,7 +41,9 @@ def clean_demo_overrides(data: str) -> list[str]:
 
 def build(method: str, overrides: list[str], out: Path):
     from rainyscape import config
-    from rainyscape.engine.pipeline import build_pipeline, load_scene, resolve_device
+    from rainyscape.engine.pipeline import build_pipeline
+    from rainyscape.engine.scene_loading import load_scene
+    from rainyscape.engine.device import resolve_device
     from rainyscape.engine.run import scene_folder
     from rainyscape.engine.trainer import Trainer, seed_everything
     from rainyscape.workflow import with_scene
@@ -73,7 +75,7 @@ def view_metrics(trainer, indices) -> tuple[float, float]:
     scene, psnrs, ssims = trainer.scene, [], []
     reference = scene.clean_images if scene.clean_images is not None else scene.images
     for i in indices:
-        rgb = render_view(trainer.p, i).rgb.clamp(0, 1)
+        rgb = render_view(trainer.pipeline, i).rgb.clamp(0, 1)
         clean = reference[i].to(trainer.device).permute(2, 0, 1)[None].float() / 255
         psnrs.append(float(psnr(rgb, clean)))
         ssims.append(float(ssim(rgb, clean)))
@@ -91,7 +93,7 @@ def ceiling(args) -> dict:
         trainer.train_step()
         trained += time.perf_counter() - t0
         if trainer.step % args.stats_every == 0 or trainer.step == cfg.trainer.max_iters:
-            trace.append({"step": trainer.step, "seconds": round(trained, 1), **trainer.p.field.stats()})
+            trace.append({"step": trainer.step, "seconds": round(trained, 1), **trainer.pipeline.field.stats()})
     scene = trainer.scene
     train_psnr, train_ssim = view_metrics(trainer, scene.train_indices)
     held_psnr, held_ssim = view_metrics(trainer, scene.eval_indices) if scene.eval_indices else (None, None)
@@ -116,7 +118,7 @@ def heldout_metrics(trainer) -> dict:
 
     scene, psnrs, ssims = trainer.scene, [], []
     for i in scene.eval_indices:
-        rgb = render_view(trainer.p, i).rgb.clamp(0, 1)
+        rgb = render_view(trainer.pipeline, i).rgb.clamp(0, 1)
         reference = scene.clean_images if scene.clean_images is not None else scene.images
         clean = reference[i].to(trainer.device).permute(2, 0, 1)[None].float() / 255
         psnrs.append(float(psnr(rgb, clean)))
@@ -141,8 +143,8 @@ def speed(args) -> dict:
         "nerf_mlp_step_s": mlp_step,
         "grid_mean_step_s": sum(grid_times) / len(grid_times),
         "grid_final_step_s": sum(tail) / len(tail),
-        "grid_final_resolution": grid.p.field.resolution,
-        "grid_occupied_fraction": grid.p.field.occupancy.fraction(),
+        "grid_final_resolution": grid.pipeline.field.resolution,
+        "grid_occupied_fraction": grid.pipeline.field.occupancy.fraction(),
     }
     result["ratio_mean"] = mlp_step / result["grid_mean_step_s"]
     result["ratio_final"] = mlp_step / result["grid_final_step_s"]

@@ -19,6 +19,10 @@ import json
 import sys
 from pathlib import Path
 
+from rainyscape.eval.metric_keys import quick_key
+
+TRAIN_CLEAN, TRAIN_RAINY = quick_key("train", "clean"), quick_key("train", "rainy")
+
 
 def read_curve(log_path: Path) -> list[dict]:
     """The periodic ``eval`` records of a run's log.jsonl, with step and training time."""
@@ -32,7 +36,7 @@ def read_curve(log_path: Path) -> list[dict]:
     return rows
 
 
-def peak(curve: list[dict], key: str = "train_psnr_clean") -> dict:
+def peak(curve: list[dict], key: str = TRAIN_CLEAN) -> dict:
     """The evaluation where ``key`` is highest."""
     best = max(curve, key=lambda r: r[key])
     return {"step": best["step"], "psnr_clean": best[key], "time": best["time"]}
@@ -46,10 +50,10 @@ def plot(curve: list[dict], title: str, path: Path, growth_steps: list[int]) -> 
 
     steps = [r["step"] for r in curve]
     fig, ax = plt.subplots(figsize=(7, 4))
-    styles = {"train_psnr_clean": ("vs clean (training views)", "C0", "-"),
-              "train_psnr_rainy": ("vs rainy (training views)", "C1", "-"),
-              "heldout_psnr_clean": ("vs clean (held-out views)", "C0", ":"),
-              "heldout_psnr_rainy": ("vs rainy (held-out views)", "C1", ":")}
+    views = {"train": ("training views", "-"), "heldout": ("held-out views", ":")}
+    colors = {"clean": "C0", "rainy": "C1"}
+    styles = {quick_key(split, against): (f"vs {against} ({name})", colors[against], style)
+              for split, (name, style) in views.items() for against in colors}
     for key, (label, color, style) in styles.items():
         if all(key in r for r in curve):
             ax.plot(steps, [r[key] for r in curve], style, color=color, label=label)
@@ -84,7 +88,7 @@ def main(argv: list[str]) -> int:
     cfg = config.method_config(args.method, defaults + overrides + ([f"data={args.data}"] if args.data else []))
     result = train_and_evaluate(cfg)
     curve = read_curve(result.run_dir / "log.jsonl")
-    if not curve or "train_psnr_clean" not in curve[0]:
+    if not curve or TRAIN_CLEAN not in curve[0]:
         print("error: the scene has no clean images to compare with", file=sys.stderr)
         return 2
     growth = []
@@ -106,7 +110,7 @@ def main(argv: list[str]) -> int:
                 f"PSNR peaks at step {best['step']}", out / f"{stem}.png", growth)
     print(f"peak PSNR vs clean {best['psnr_clean']:.2f} dB at step {best['step']} "
           f"({100 * summary['peak_fraction']:.0f}% of {cfg.trainer.max_iters}); "
-          f"final vs clean {curve[-1]['train_psnr_clean']:.2f}, vs rainy {curve[-1]['train_psnr_rainy']:.2f}")
+          f"final vs clean {curve[-1][TRAIN_CLEAN]:.2f}, vs rainy {curve[-1][TRAIN_RAINY]:.2f}")
     print(f"wrote {out / (stem + '.png')} and {out / (stem + '.json')}")
     return 0
 

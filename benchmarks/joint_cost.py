@@ -90,7 +90,7 @@ def instrument(trainer, timer: Timer) -> None:
     """Route the trainer's work through ``timer`` (instance attributes only: the classes and
     other trainers are untouched, except ``compute_losses`` and ``Tensor.backward``, which
     are patched while a step of this trainer runs, see :func:`timed_step`)."""
-    p = trainer.p
+    p = trainer.pipeline
     timer.wrap(p.field, "render", "render")
     for head in p.heads.values():
         timer.wrap(head, "forward", "head")
@@ -172,7 +172,7 @@ def run_pair(plain: str, rain: str, args) -> dict:
         "threads": torch.get_num_threads(), "repeats": args.repeats, "warm": args.warm,
         "plain_step_ms": round(1e3 * ta, 2), "rain_step_ms": round(1e3 * tb, 2),
         "ratio": round(tb / ta, 2),
-        "plain_field": a.p.field.stats(), "rain_field": b.p.field.stats(),
+        "plain_field": a.pipeline.field.stats(), "rain_field": b.pipeline.field.stats(),
         "breakdown_ms": {k: round(1e3 * timer.totals.get(k, 0.0) / args.repeats, 2) for k in SECTIONS},
         "breakdown_share": {k: round(timer.totals.get(k, 0.0) / total, 3) for k in SECTIONS},
     }

@@ -95,7 +95,7 @@ def ground_truth(views: tuple[int, ...] = (7, 31)) -> None:
     128 px crop (2N: 256 px)."""
     from rainyscape.synth.layout import to_uint8
     from rainyscape.synth.presets import PRESETS
-    from rainyscape.synth.render import SceneRenderer
+    from rainyscape.synth.raycast import SceneRenderer
     from rainyscape.synth.rig import make_rig
     from rainyscape.synth.scenes import build_scene
 

@@ -163,6 +163,9 @@ class LossContext:
     step: int
     phase: str
     window: Window | None = None  # which pixels of the views the batch holds
+    # False while a head's latent update evaluates the loss as its energy (on a crop): terms
+    # then leave what they record (metrics, estimated angles) to the network update's call
+    record: bool = True
 
     @property
     def rain(self) -> Tensor | None:
@@ -199,7 +202,10 @@ class Loss:
 
 
 class PostProcess:
-    """``__call__(rendered, rain, rainy) -> image`` on one training view (3, H, W)."""
+    """``__call__(rendered, rain, rainy) -> image`` on one training view (3, H, W).
+
+    A fusion that keeps rendered pixels under a mask and input pixels elsewhere also states
+    :class:`MaskFusion` (its coverage and its random-mask control)."""
 
     description = ""
 
@@ -243,6 +249,37 @@ class PlyExportable(Protocol):
     """A field that writes itself as a standard 3DGS ``.ply``."""
 
     def export_ply(self, path: Path) -> None: ...
+
+
+@dataclass
+class FusionControl:
+    """What a mask fusion reports of one training view."""
+
+    coverage: float  # share of the view's pixels the fusion takes from the render
+    control: Tensor  # (3, H, W): the same fusion under a random mask of that coverage
+
+
+@runtime_checkable
+class MaskFusion(Protocol):
+    """A post-process that keeps rendered pixels under a mask and input pixels elsewhere.
+    Evaluation asks it for its coverage and a control, the same fusion under a mask of random
+    pixels with the same coverage: a fused gain the control also shows comes from copying the
+    input, not from finding the rain."""
+
+    def control(self, rendered: Tensor, rain: Tensor, rainy: Tensor, seed: int) -> FusionControl:
+        """Coverage of this view's mask and the control (its random mask placed with ``seed``:
+        the same seed gives the same mask anywhere)."""
+
+
+@runtime_checkable
+class MeasuresRainAngles(Protocol):
+    """A component that estimates the rain's streak directions while training (the AGR loss);
+    evaluation measures the angles of the predicted, residual and true rain with its settings,
+    so they are measured as training measured them."""
+
+    def angle_settings(self) -> dict[str, Any]:
+        """Keyword arguments of :func:`rainyscape.imaging.angles.estimate_rain_angles`
+        (``bins``, ``threshold``, ``smoothing``, ``kernel``, ``k``: directions per image)."""
 
 
 @runtime_checkable

@@ -32,6 +32,9 @@ class SceneData:
     rain_layers: Tensor | None = None  # (N, H, W, 3) float32 true additive rain (I - B), if known
     points: Tensor | None = None  # (P, 3) sparse points (3DGS init)
     point_colors: Tensor | None = None  # (P, 3) uint8
+    # Where ``points`` came from, for the log and the report: "colmap model", "triangulated
+    # (pycolmap, known poses)", "ground-truth depth (...)", or "none ..." when there are none.
+    points_source: str = "none"
     forward_facing: bool = False  # LLFF-style capture: NeRF may use NDC
     # normalised = scale * (transform @ original); kept so exports map back to the input frame.
     transform: Tensor = field(default_factory=lambda: torch.eye(4))

@@ -1,13 +1,15 @@
 """The whole ``rs-train`` job: the scene (the embedded demo when none is given), training in a
 run folder, and the evaluation protocol with its report when the run is complete.
 
-It composes the layers below it (engine, eval, synth) so that none of them needs another:
-the engine trains whatever it is given, evaluation evaluates a pipeline, the simulator
-makes scenes. ``rs-train`` and ``rs-bench`` call :func:`train_and_evaluate`.
+It composes the layers below it (engine, eval, synth, process) so that none of them needs
+another: the engine trains whatever it is given, evaluation evaluates a pipeline, the
+simulator makes scenes, process triangulates sparse points for a field that starts from them
+when the scene has none. ``rs-train`` and ``rs-bench`` call :func:`train_and_evaluate`.
 
-The evaluation at the end of training is bounded: ``trainer.final_eval_views`` views spread
-over both splits, and no view started after ``trainer.final_eval_share`` of the training
-time has gone into it. ``rs-eval RUN_DIR`` runs the protocol on every view.
+The evaluation at the end of training is bounded by views, never by time: a fixed subset of
+``trainer.final_eval_views`` views over both splits (the same for every run of a scene), so
+that two evaluations of the same weights give the same metrics.json. ``rs-eval RUN_DIR`` runs
+the protocol on every view.
 """
 
 from __future__ import annotations
@@ -16,9 +18,13 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 from rainyscape.config import PipelineConfig
-from rainyscape.engine.run import Run, RunResult, open_run, recording_failures, write_status
+from rainyscape.engine.run import Run, RunResult, open_run
+from rainyscape.errors import warn
+from rainyscape.eval.report import POINTS_RECORD, points_line
+from rainyscape.scene import SceneData
 
 
 def with_scene(cfg: PipelineConfig) -> PipelineConfig:
@@ -31,24 +37,79 @@ def with_scene(cfg: PipelineConfig) -> PipelineConfig:
     return dataclasses.replace(cfg, data=str(ensure_demo_scene()))
 
 
-def final_evaluation(run: Run, training_seconds: float | None) -> dict:
-    """The protocol on the views ``trainer.final_eval_views`` / ``final_eval_share`` allow,
-    with a line saying what it evaluates; ``training_seconds``: the whole run's estimated
-    training time (None: unknown, no time limit)."""
+def wants_sparse_points(cfg: PipelineConfig) -> bool:
+    """Whether the run's field starts from the scene's sparse points: its ``init`` option is
+    ``auto`` or ``points`` (the Gaussian field's; ``field.init=random`` or ``frustum`` do not)."""
+    return getattr(cfg.field.options, "init", None) in ("auto", "points")
+
+
+def sparse_points_step(cfg: PipelineConfig) -> Callable[[SceneData], SceneData] | None:
+    """What completes the scene before the field is built: for a field that starts from sparse
+    points, points triangulated from the training views (cached) when the scene has none."""
+    if not wants_sparse_points(cfg):
+        return None
+
+    def add_points(scene: SceneData) -> SceneData:
+        if scene.points is not None and len(scene.points):
+            return scene
+        if len(scene.train_indices) < 2:
+            return scene
+        import torch
+
+        from rainyscape.process.scene_points import with_sparse_points
+        from rainyscape.process.triangulate import TriangulationOptions
+
+        print(f"sparse points: {scene.name} has none; triangulating them from its "
+              f"{len(scene.train_indices)} training views (pycolmap, known poses) ...", file=sys.stderr)
+        try:
+            return with_sparse_points(scene, TriangulationOptions(num_threads=torch.get_num_threads()))
+        except (RuntimeError, ValueError, OSError) as exc:  # a failed SfM step must not stop training
+            warn(f"triangulating sparse points failed ({type(exc).__name__}: {exc}); the field "
+                 "starts without them")
+            return dataclasses.replace(scene, points_source=f"none (triangulation failed: {exc})")
+
+    return add_points
+
+
+def points_record(cfg: PipelineConfig, scene: SceneData) -> dict:
+    """What the log and the report say of the points the field started from."""
+    count = 0 if scene.points is None else int(len(scene.points))
+    record = {"points": count, "source": scene.points_source,
+              "field_init": getattr(cfg.field.options, "init", None)}
+    details = scene.metadata.get("sparse_points")
+    if details:
+        record["triangulation"] = details
+    return record
+
+
+def log_points(run: Run) -> None:
+    """One console line and, on a fresh run, one log.jsonl record (step 0) about the field's
+    starting points; nothing for a field that does not start from points."""
+    cfg = run.pipeline.config
+    if getattr(cfg.field.options, "init", None) is None:
+        return
+    record = points_record(cfg, run.pipeline.scene)
+    print(f"sparse points: {points_line(record)}", file=sys.stderr)
+    if run.trainer.step == 0 and not any(POINTS_RECORD in r for r in run.folder.log_records()):
+        run.folder.append_log({"step": 0, POINTS_RECORD: record})
+
+
+def final_evaluation(run: Run) -> dict:
+    """The protocol on the fixed subset of views ``trainer.final_eval_views`` asks for, with a
+    line saying which views it measures."""
     from rainyscape.eval.protocol import evaluate_pipeline
     from rainyscape.eval.views import choose_views
 
-    t = run.pipeline.config.trainer
     scene = run.pipeline.scene
-    views = choose_views(list(scene.train_indices), list(scene.eval_indices), t.final_eval_views)
-    limit = t.final_eval_share * training_seconds if t.final_eval_share and training_seconds else None
-    some = len(views) < scene.num_images or limit is not None
+    views = choose_views(list(scene.train_indices), list(scene.eval_indices),
+                         run.pipeline.config.trainer.final_eval_views)
+    some = len(views) < scene.num_images
     print(f"evaluating {len(views)} of {scene.num_images} views"
-          + (f" (at most {limit:.0f} s, {t.final_eval_share:.0%} of the training time)" if limit else "")
-          + (f"; rs-eval {run.run_dir} evaluates every view" if some else ""), file=sys.stderr)
-    metrics = evaluate_pipeline(run.pipeline, run.run_dir, views=views, time_limit=limit)
-    done = metrics["evaluated"]
-    print(f"evaluated {len(done['views'])} views in {done['seconds']:.1f} s", file=sys.stderr)
+          + (f" ({', '.join(scene.image_names[i] for i in views)}; a fixed subset: rs-eval "
+             f"{run.run_dir} evaluates every view)" if some else ""), file=sys.stderr)
+    started = time.perf_counter()
+    metrics = evaluate_pipeline(run.pipeline, run.run_dir, views=views)
+    print(f"evaluated {len(views)} views in {time.perf_counter() - started:.1f} s", file=sys.stderr)
     return metrics
 
 
@@ -60,18 +121,16 @@ def train_and_evaluate(cfg: PipelineConfig, run_dir: Path | None = None) -> RunR
 
     metrics: dict = {}
     with open_run(with_scene(cfg), run_dir,
-                  evaluator=lambda pipeline: quick_eval(pipeline, cfg.trainer.eval_views)) as run:
-        with recording_failures(run.run_dir):
-            first, started = run.trainer.step, time.perf_counter()
+                  evaluator=lambda pipeline: quick_eval(pipeline, cfg.trainer.eval_views),
+                  prepare_scene=sparse_points_step(cfg)) as run:
+        log_points(run)
+        with run.folder.recording_failures():
             run.trainer.train()
-            steps = run.trainer.step - first
-            per_step = (time.perf_counter() - started) / steps if steps else None
-            if run.finished:
-                total = per_step * run.pipeline.config.trainer.max_iters if per_step else None
-                metrics = final_evaluation(run, total)
+            if run.trained:
+                metrics = final_evaluation(run)
                 metrics["step"] = run.trainer.step
-                write_status(run.run_dir, "finished", step=run.trainer.step)  # before the report shows it
+                run.folder.set_status("finished", step=run.trainer.step)  # before the report shows it
                 write_metrics(run.run_dir, metrics)
             else:
-                write_status(run.run_dir, "stopped", step=run.trainer.step)
+                run.folder.set_status("stopped", step=run.trainer.step)
     return RunResult(run.run_dir, metrics)

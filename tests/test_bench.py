@@ -7,8 +7,8 @@ import subprocess
 
 import pytest
 
-from rainyscape.bench.matrix import ABLATIONS, Cell, build_cells
-from rainyscape.bench.tables import markdown_report, markdown_table
+from rainyscape.comparison.matrix import ABLATIONS, Cell, build_cells
+from rainyscape.comparison.tables import markdown_report, markdown_table
 
 
 def _result(psnr: float, post: bool = False, train_s: float = 10.0, mem: float = 500.0, scene: str = "") -> dict:

@@ -7,10 +7,10 @@ import subprocess
 
 import pytest
 
-from rainyscape.bench.budget import Budget, budget_mismatches, cell_budget, check_budgets
-from rainyscape.bench.matrix import build_cells
-from rainyscape.bench.sets import SCENE_SETS
-from rainyscape.bench.tables import budget_column, markdown_report
+from rainyscape.comparison.budget import Budget, budget_mismatches, cell_budget, check_budgets
+from rainyscape.comparison.matrix import build_cells
+from rainyscape.comparison.sets import SCENE_SETS
+from rainyscape.comparison.tables import budget_column, markdown_report
 from rainyscape.config import method_config
 from rainyscape.errors import ConfigError
 
@@ -19,7 +19,7 @@ PAPER_PATCH = ("phases.joint.patches=1", "phases.joint.patch_size=64")  # one 64
 
 
 def _budget(method: str, *overrides: str, size: int = 128) -> Budget:
-    return cell_budget(method_config(method, ["trainer.max_iters=100", *overrides]), size, size)
+    return cell_budget(method_config(method, ["trainer.max_iters=100", *overrides]), size, size, 16)
 
 
 def test_budgets_of_the_real_methods():
@@ -103,7 +103,7 @@ def test_rs_bench_refuses_unequal_budgets_before_anything_runs(tmp_path):
 
 
 def test_rain_table_lists_rain_methods_with_their_means():
-    from rainyscape.bench.tables import rain_table
+    from rainyscape.comparison.tables import rain_table
 
     cells = build_cells(["3dgs", "rainyscape-3dgs"], [("yard", "/y"), ("plaza", "/p")], [])
     summaries = {"yard/3dgs": {"train_psnr": 20.0},
@@ -118,7 +118,7 @@ def test_rain_table_lists_rain_methods_with_their_means():
 
 
 def test_gap_table_puts_each_gain_next_to_the_gap_its_field_leaves():
-    from rainyscape.bench.tables import gap_table, markdown_report
+    from rainyscape.comparison.tables import gap_table, markdown_report
 
     cells = build_cells(["3dgs", "rainyscape-3dgs"], [("yard", "/y"), ("plaza", "/p")], [], ceiling=["3dgs"])
     psnr = {"yard/3dgs on clean views": 31.0, "plaza/3dgs on clean views": 33.0, "yard/3dgs": 30.0,
@@ -140,7 +140,7 @@ def test_every_recipe_builds_and_a_field_family_shares_one_budget(profile):
     from rainyscape import registry
 
     ours = [n for n, e in registry.entries("method").items() if e.target.startswith("rainyscape.methods")]
-    budgets = {m: cell_budget(method_config(m, [f"profile={profile}"]), 512, 512) for m in ours}
+    budgets = {m: cell_budget(method_config(m, [f"profile={profile}"]), 512, 512, 44) for m in ours}
     groups = {"grid": ("nerf", "robust-nerf", "rainyscape-nerf"),
               "nerf-mlp": ("vanilla-nerf", "rainyscape-vanilla-nerf"),
               "gaussians": ("3dgs", "robust-3dgs", "rainyscape-3dgs", "rainyscape-plus")}
@@ -152,7 +152,7 @@ def test_every_recipe_builds_and_a_field_family_shares_one_budget(profile):
 
 
 def test_region_table_splits_each_render_into_rain_and_dry_pixels():
-    from rainyscape.bench.tables import region_table
+    from rainyscape.comparison.tables import region_table
 
     cells = build_cells(["3dgs", "rainyscape-3dgs"], [("yard", "/y"), ("plaza", "/p")], [], ceiling=["3dgs"])
     # the ceiling trains on the clean views: its "input" is exact (PSNR capped at 120 dB)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from rainyscape.bench.oracle import ORACLE_SAMPLES, cached_oracle, scene_oracle
+from rainyscape.comparison.oracle import ORACLE_SAMPLES, cached_oracle, scene_oracle
 from rainyscape.config import method_config
 
 

@@ -125,3 +125,24 @@ def test_cli_errors_exit_non_zero_before_work(toy_plugin, tmp_path, args, messag
     assert out.returncode == 2
     assert message in out.stderr and "Traceback" not in out.stderr
     assert not (tmp_path / "outputs").exists() or not any((tmp_path / "outputs").rglob("config.yml"))
+
+
+def test_run_length_is_steps_per_training_view_within_bounds():
+    from rainyscape.config import TrainerConfig, describe_run_length, run_length
+
+    rule = TrainerConfig(max_iters=3000, iters_per_view=100, min_iters=1500)
+    assert [run_length(rule, v) for v in (5, 17, 30, 50)] == [1500, 1700, 3000, 3000]
+    assert run_length(TrainerConfig(max_iters=700, iters_per_view=0), 50) == 700  # no rule
+    assert run_length(TrainerConfig(max_iters=700, iters_per_view=10, min_iters=5000), 3) == 700  # max wins
+    assert "100 steps per training view" in describe_run_length(rule)
+
+
+def test_the_scene_resolves_the_run_length_and_config_yml_records_it(toy_plugin, tiny_scene_dir, tmp_path):
+    args = ["rs-train", "method=toy", f"data={tiny_scene_dir}", f"trainer.output_dir={tmp_path}",
+            "trainer.max_iters=100", "trainer.iters_per_view=2", "trainer.min_iters=0"]
+    done = subprocess.run(args, capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(toy_plugin)))
+    assert done.returncode == 0, done.stderr
+    (run,) = [p.parent for p in tmp_path.rglob("config.yml")]
+    cfg = config.load_yaml(run / "config.yml")
+    assert cfg.trainer.max_iters == 2 * 11  # 12 views, the 8th held out
+    assert '"step": 22' in (run / "status.json").read_text()

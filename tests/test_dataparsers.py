@@ -47,7 +47,9 @@ def test_maya_csv_reads_everything(tiny_scene, tiny_scene_dir):
     assert s.clean_images.shape == s.images.shape and s.rain_layers.dtype == torch.float32
     assert s.image_names[:2] == ["001.png", "002.png"]
     assert s.eval_indices == [7] and len(s.train_indices) == 11
-    assert s.points is not None and len(s.points) > 1000 and s.point_colors.dtype == torch.uint8
+    # ground-truth depth becomes points only when asked (the fixture asks: points_from_depth)
+    assert MayaCsvParser(MayaCsvConfig()).parse(tiny_scene_dir).points is None
+    assert len(s.points) > 1000 and s.point_colors.dtype == torch.uint8
     assert 0 < s.near < s.far
     # normalisation is recorded: mapping back gives the CSV positions
     with open(tiny_scene_dir / "cameras.csv") as fh:

@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from rainyscape.eval.metric_keys import RAIN_KEPT, RAIN_RECOVERED
 from rainyscape.eval.protocol import evaluate_pipeline, write_metrics
 from rainyscape.eval.rain_stats import correlation
 from rainyscape.eval.views import quick_eval
@@ -145,7 +146,7 @@ def test_two_direction_rain_is_matched_whichever_direction_dominates():
 
 
 def test_the_simulator_records_how_many_directions_its_rain_falls_in(tmp_path, tiny_scene_dir):
-    from rainyscape.dataparsers.maya_csv import simulated_rain
+    from rainyscape.dataparsers.truth import simulated_rain
 
     assert simulated_rain(tiny_scene_dir) == {"rain_directions": 1}
     (tmp_path / "scene.json").write_text(json.dumps({"rain": {"wind2_deg": 20.0, "mix": 0.45}}))
@@ -170,12 +171,12 @@ def test_psnr_in_rain_and_on_dry_pixels():
     v = ViewImages(0, "v", "train", clean + true_rain, rendered, None, clean=clean, true_rain=true_rain,
                    post={"fusion": fused})
     row = view_metrics(v, LpipsMetric(None, "not needed"), {})
-    assert row["psnr_in_rain"] == pytest.approx(20.0, abs=1e-3)
-    assert row["psnr_dry"] == pytest.approx(40.0, abs=1e-3)
+    assert row["train_psnr_in_rain"] == pytest.approx(20.0, abs=1e-3)
+    assert row["train_psnr_dry"] == pytest.approx(40.0, abs=1e-3)
     assert row["rainy_input_psnr_in_rain"] == pytest.approx(-10 * math.log10(0.3 ** 2 / 3), abs=1e-3)
-    assert row["fusion_psnr_in_rain"] == pytest.approx(20.0, abs=1e-3) and row["fusion_psnr_dry"] == 120.0
+    assert row["train_fusion_psnr_in_rain"] == pytest.approx(20.0, abs=1e-3) and row["train_fusion_psnr_dry"] == 120.0
     dry = ViewImages(0, "v", "heldout", clean, rendered, None, clean=clean, true_rain=torch.zeros(3, 8, 8))
-    assert view_metrics(dry, LpipsMetric(None, "not needed"), {})["psnr_in_rain"] is None
+    assert view_metrics(dry, LpipsMetric(None, "not needed"), {})["heldout_psnr_in_rain"] is None
 
 
 def test_rain_shares_say_where_the_true_rain_went():
@@ -195,11 +196,11 @@ def test_rain_shares_say_where_the_true_rain_went():
     v = ViewImages(0, "v", "train", clean + true_rain, rendered, None, clean=clean, true_rain=true_rain,
                    rain=rain, post={"keep": clean + true_rain})
     row = view_metrics(v, LpipsMetric(None, "not needed"), {})
-    assert row["rain_kept"] == pytest.approx(1 / 3, abs=1e-6)
-    assert row["rain_recovered"] == pytest.approx(0.5, abs=1e-6)
-    assert row["keep_rain_kept"] == pytest.approx(1.0, abs=1e-6)
-    assert "keep_rain_recovered" not in row
+    assert row["train_rain_kept"] == pytest.approx(1 / 3, abs=1e-6)
+    assert row["train_rain_recovered"] == pytest.approx(0.5, abs=1e-6)
+    assert row["train_keep_rain_kept"] == pytest.approx(1.0, abs=1e-6)
+    assert "train_keep_rain_recovered" not in row
     darker = rain_shares(clean - true_rain, clean, true_rain, wet)
-    assert darker == {"rain_kept": pytest.approx(-1.0)}  # a render darker than clean reads below 0
+    assert darker == {RAIN_KEPT: pytest.approx(-1.0)}  # a render darker than clean reads below 0
     assert rain_shares(rendered, clean, torch.zeros(3, 8, 8), torch.zeros(8, 8, dtype=torch.bool),
-                       rain) == {"rain_kept": None, "rain_recovered": None}
+                       rain) == {RAIN_KEPT: None, RAIN_RECOVERED: None}

@@ -33,7 +33,8 @@ from _plugins import install_toy_plugin
 from rainyscape import config, registry
 from rainyscape.cli import run_cli
 from rainyscape.engine.checkpoint import list_checkpoints, load_checkpoint
-from rainyscape.engine.run import load_run, read_status
+from rainyscape.engine.run import load_run
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.errors import RainyScapeError
 from rainyscape.workflow import train_and_evaluate
 
@@ -163,7 +164,7 @@ def test_a_crafted_checkpoint_is_refused_without_running_its_code(reference_run,
 def test_a_truncated_newest_checkpoint_falls_back_and_resume_matches(reference_run, tiny_scene_dir,
                                                                       tmp_path, capsys):
     run = _train(tiny_scene_dir, tmp_path, "trainer.stop_at=20")
-    assert read_status(run)["state"] == "stopped"
+    assert RunFolder(run).status()["state"] == "stopped"
     newest = run / "checkpoints" / "step-0000020.pt"
     data = newest.read_bytes()
     newest.write_bytes(data[: len(data) // 3])
@@ -173,7 +174,7 @@ def test_a_truncated_newest_checkpoint_falls_back_and_resume_matches(reference_r
     # set aside for inspection, not deleted
     assert (run / "checkpoints" / "step-0000020.pt.corrupt").read_bytes() == data[: len(data) // 3]
     assert _logged_steps(run) == list(range(1, ITERS + 1))  # the log was cut back to step 10
-    assert read_status(run)["state"] == "finished"
+    assert RunFolder(run).status()["state"] == "finished"
     _same_params(reference_run, run)
 
 
@@ -223,13 +224,13 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(when, reference_run, to
     assert proc.returncode == -signal.SIGKILL
     assert [p.name for p in list_checkpoints(run / "checkpoints")][-1] in ("step-0000010.pt", "step-0000020.pt")
     # the killed process left "running"; nobody holds the folder, so it reads as interrupted
-    status = read_status(run)
+    status = RunFolder(run).status()
     assert status["state"] == "interrupted" and str(proc.pid) in status["note"]
     code, err = _cli(capsys, "train", f"resume={run}")
     assert code == 0, err
     assert not list((run / "checkpoints").glob("*.tmp"))
     assert _logged_steps(run) == list(range(1, ITERS + 1))  # no step logged twice
-    assert read_status(run)["state"] == "finished"
+    assert RunFolder(run).status()["state"] == "finished"
     _same_params(reference_run, run)
 
 
@@ -260,7 +261,7 @@ def test_a_second_resume_of_a_busy_run_is_refused_naming_the_holder(toy_env, tin
     assert code == 2 and "in use by rs-train" in line and f"pid {first.pid}" in line
     assert first.wait(timeout=300) == 0, first.stderr.read()
     assert _logged_steps(run) == list(range(1, ITERS + 1))  # every step once
-    assert read_status(run)["state"] == "finished"
+    assert RunFolder(run).status()["state"] == "finished"
     # a finished run is not re-evaluated silently
     metrics = (run / "metrics.json").read_bytes()
     code, err = _cli(capsys, "train", f"resume={run}")
@@ -293,14 +294,17 @@ def test_user_files_survive_every_writing_command(reference_run, toy_env, tiny_s
     code, err = _cli(capsys, "train", f"resume={run}", "trainer.max_iters=8")
     assert code == 0, err
     assert {k: v for k, v in _snapshot(run).items() if k in in_run} == in_run
-    # rs-export refuses the user's non-empty folder, and with force=true keeps what it does not write
+    # rs-export refuses the user's non-empty folder; force=true replaces what an export writes
+    # (transforms.json, images/) as a whole, never a part, and keeps the rest
     code, err = _cli(capsys, "export", run, f"out={user}", "what=cameras", "device=cpu")
     assert code == 2 and str(user) in _one_error_line(err)
     assert {k: v for k, v in _snapshot(user).items() if k in before} == before
     code, err = _cli(capsys, "export", run, f"out={user}", "what=cameras", "device=cpu", "force=true")
     assert code == 0, err
-    kept = {k: v for k, v in before.items() if k not in ("transforms.json",)}
+    kept = {k: v for k, v in before.items() if not k.startswith(("transforms.json", "images/"))}
     assert {k: v for k, v in _snapshot(user).items() if k in kept} == kept
+    names = [f["file_path"] for f in json.loads((user / "transforms.json").read_text())["frames"]]
+    assert sorted(f"images/{p.name}" for p in (user / "images").iterdir()) == sorted(names)  # no old image left
 
 
 # ------------------------------------------------------------------------- bad input table
@@ -373,6 +377,37 @@ def _drop_weights(run: Path) -> None:
     torch.save(state, path)
 
 
+def _same_image(meta):
+    meta["frames"][1]["file_path"] = meta["frames"][0]["file_path"]
+
+
+def _colmap_scene(dest: Path) -> Path:
+    """The colmap parser tests' three-view scene with its model in COLMAP's binary format."""
+    import pycolmap
+    from test_colmap_parser import write_scene
+
+    write_scene(dest)
+    model_dir = dest / "sparse" / "0"
+    model = pycolmap.Reconstruction()
+    model.read(model_dir)
+    for f in list(model_dir.iterdir()):
+        f.unlink()
+    model.write_binary(str(model_dir))
+    return dest
+
+
+def _truncate(name: str, size: int):
+    def change(scene: Path) -> None:
+        path = scene / "sparse" / "0" / name
+        path.write_bytes(path.read_bytes()[:size])
+    return change
+
+
+def _second_model_and_no_cameras(scene: Path) -> None:
+    shutil.copytree(scene / "sparse", scene / "colmap" / "sparse")  # a model the parser could fall back on
+    (scene / "sparse" / "0" / "cameras.bin").unlink()
+
+
 def _moved_scene(run: Path) -> None:
     text = (run / "config.yml").read_text()
     data = next(line for line in text.splitlines() if line.startswith("data:"))
@@ -422,6 +457,29 @@ BAD_INPUTS = {
     "scene moved (export)": ("export", lambda c: [c.run(_moved_scene), "device=cpu"], "data="),
     "render frames=0": ("render", lambda c: [c.run(), "frames=0"], "frames"),
     "export resolution=4": ("export", lambda c: [c.run(), "resolution=4"], "resolution"),
+    # the third probe (issue 31): cases 8, 10, 13, 14, 16, 17, 18 and option ranges
+    "seed=-1": ("train", lambda c: ["method=toy", *c.toy("trainer.seed=-1")], "trainer.seed"),
+    "seed=99999999999": ("train", lambda c: ["method=toy", *c.toy("trainer.seed=99999999999")], "trainer.seed"),
+    "resume method=": ("train", lambda c: [f"resume={c.run()}", "method=3dgs"], "method=3dgs"),
+    "resume output_dir": ("train", lambda c: [f"resume={c.run()}", f"trainer.output_dir={c.tmp}"],
+                          "trainer.output_dir"),
+    "resume seed": ("train", lambda c: [f"resume={c.run()}", "trainer.seed=3"], "trainer.seed"),
+    "force without resume": ("train", lambda c: ["method=toy", *c.toy("force=true")], "force=true"),
+    "retired final_eval_share": ("train", lambda c: ["method=toy", *c.toy("trainer.final_eval_share=0")],
+                                 "trainer.final_eval_share"),
+    "two frames, one image": ("train", lambda c: ["method=toy", *c.toy(data=c.tj("twice", _same_image))],
+                              "frames 0 and 1 both use"),
+    "resolution_final=100000": ("train", lambda c: ["method=nerf", "field.resolution_final=100000"],
+                                "field.resolution_final"),
+    "0-byte points3D.bin": ("train", lambda c: ["method=toy", *c.toy(data=c.colmap(_truncate("points3D.bin", 0)))],
+                            "sparse/0/points3D.bin: truncated"),
+    "truncated cameras.bin": ("train", lambda c: ["method=toy", *c.toy(data=c.colmap(_truncate("cameras.bin", 100)))],
+                              "sparse/0/cameras.bin: truncated"),
+    "model file deleted": ("train", lambda c: ["method=toy", *c.toy(data=c.colmap(_second_model_and_no_cameras))],
+                           "sparse/0/cameras.bin: missing"),
+    "eval device=tpu": ("eval", lambda c: [c.run(), "device=tpu"], "device=tpu"),
+    "export what=obj": ("export", lambda c: [c.run(), "what=obj"], "what=obj"),
+    "render path=loop": ("render", lambda c: [c.run(), "path=loop"], "path=loop"),
 }
 
 
@@ -445,16 +503,25 @@ class _Paths:
     def run(self, change=None) -> Path:
         return _run_copy(self.reference_run, self.tmp / "run", change)
 
+    def colmap(self, change) -> Path:
+        scene = _colmap_scene(self.tmp / "colmap_scene")
+        change(scene)
+        return scene
+
 
 @pytest.mark.parametrize("case", sorted(BAD_INPUTS))
 def test_bad_input_is_one_error_line_naming_it(case, toy_env, tiny_scene_dir, tj_scene, reference_run,
                                                tmp_path, capsys):
     command, argv, names = BAD_INPUTS[case]
-    code, err = _cli(capsys, command, *argv(_Paths(tmp_path, tiny_scene_dir, tj_scene, reference_run)))
+    paths = _Paths(tmp_path, tiny_scene_dir, tj_scene, reference_run)
+    args = argv(paths)
+    before = _snapshot(tmp_path)
+    code, err = _cli(capsys, command, *args)
     line = _one_error_line(err)
     assert code == 2, err
     assert names in line, line
-    assert not list((tmp_path / "outputs").rglob("config.yml"))  # input errors come before a run folder
+    assert not (tmp_path / "outputs").exists()  # input errors come before a run folder (or its parents)
+    assert _snapshot(tmp_path) == before  # the inputs (run copies, scenes) survive byte for byte
 
 
 # ------------------------------------------------------------------------ inputs that work
@@ -510,6 +577,220 @@ def test_nerfstudio_split_lists_give_the_held_out_views(tj_scene, tmp_path):
 def test_the_end_of_run_evaluation_is_bounded_and_says_which_views(reference_run):
     metrics = json.loads((reference_run / "metrics.json").read_text())
     done = metrics["evaluated"]
-    assert 1 <= len(done["views"]) <= 8 and not done["all"]
-    assert done["train"] >= 1 and done["heldout"] >= 1  # both splits, spread evenly
-    assert len(metrics["per_view"]) == len(done["views"])
+    assert len(done["views"]) == 8 and not done["all"]  # trainer.final_eval_views, by default 8 of 12
+    # half from each split where it has enough: the one held-out view, and 7 of 11 training views
+    assert (done["train"], done["heldout"]) == (7, 1) == (7, metrics["views"]["heldout"])
+    assert [r["view"] for r in metrics["per_view"]] == done["views"]
+    report = (reference_run / "report.html").read_text()
+    assert "Measured on 8 of 12 views: " + ", ".join(done["views"]) in report
+
+
+# ------------------------------------------------- the third probe (issue 31): nothing lost
+
+
+def _user_folder(folder: Path) -> dict[str, bytes]:
+    """A folder of the user's with files a tool could mistake for its own; its snapshot."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "x.md").write_text("# my notes\n")
+    (folder / "x.json").write_text('{"mine": true}\n')
+    (folder / "images_rain").mkdir(exist_ok=True)
+    (folder / "images_rain" / "001.png").write_bytes(b"my photo")
+    return _snapshot(folder)
+
+
+def test_case1_rs_bench_writes_only_its_own_files(toy_env, tiny_scene_dir, tmp_path, capsys):
+    from rainyscape.comparison.output import BenchOutput, check_output, is_results_file, start_afresh
+
+    d = tmp_path / "d"
+    before = _user_folder(d)
+    bench = ["methods=toy", f"scenes={tiny_scene_dir}", "iters=2", f"out={d}", "device=cpu"]
+    code, err = _cli(capsys, "bench", *bench, "name=x")  # x.md and x.json are the user's
+    assert code == 2 and f"{d / 'x.json'}: not an rs-bench results file" in _one_error_line(err)
+    (d / "x.json").write_text('{"cells": {}}')  # one of rs-bench's (an empty benchmark)
+    code, err = _cli(capsys, "bench", *bench, "name=x")
+    assert code == 2 and f"{d / 'x.md'}: its first line is not '# Benchmark x'" in _one_error_line(err)
+    (d / "x.md").write_text("# Benchmark x\n")
+    (d / "runs" / "x" / "mine").mkdir(parents=True)
+    code, err = _cli(capsys, "bench", *bench, "name=x")
+    assert code == 2 and f"{d / 'runs' / 'x' / 'mine'}: not a cell folder" in _one_error_line(err)
+    for bad in ("name=../y", "name=y.json"):
+        code, err = _cli(capsys, "bench", *bench, bad)
+        assert code == 2 and bad in _one_error_line(err)
+    (d / "x.json").write_bytes(before["x.json"])
+    (d / "x.md").write_bytes(before["x.md"])
+    assert {k: v for k, v in _snapshot(d).items()} == before  # refused, each time, before any write
+    assert sorted(p.name for p in d.iterdir()) == ["images_rain", "runs", "x.json", "x.md"]
+    # force=true: benchmark x starts afresh, its whole output replaced; nothing else touched
+    target = BenchOutput(d, "x")
+    check_output(target, force=True)
+    start_afresh(target)
+    assert sorted(p.name for p in d.iterdir()) == ["images_rain", "runs"] and not (d / "runs" / "x").exists()
+    assert _snapshot(d) == {"images_rain/001.png": before["images_rain/001.png"]}
+    assert not is_results_file(tmp_path / "nope.json")
+
+
+def test_case2_a_failed_resume_leaves_the_run_as_it_was(reference_run, tmp_path, capsys):
+    run = _run_copy(reference_run, tmp_path / "run", _drop_weights)  # its checkpoint does not fit
+    before = _snapshot(run)
+    code, err = _cli(capsys, "train", f"resume={run}", "trainer.max_iters=42", f"data={tmp_path}")
+    assert code == 2 and str(tmp_path) in _one_error_line(err)  # no scene there
+    code, err = _cli(capsys, "train", f"resume={run}", "trainer.max_iters=42")
+    assert code == 2 and "does not fit" in _one_error_line(err)
+    assert _snapshot(run) == before  # config.yml, status.json, the log: byte for byte
+    assert RunFolder(run).status()["state"] == "finished"
+
+
+def test_case3_and_4_rs_synth_replaces_a_whole_scene_or_nothing(tmp_path, capsys, monkeypatch):
+    from rainyscape.dataparsers.maya_csv import MayaCsvConfig, MayaCsvParser
+    from rainyscape.synth import simulate
+
+    out = tmp_path / "scene"
+    small = ["preset=demo", f"out={out}", "width=8", "height=8"]
+    assert _cli(capsys, "synth", *small, "rows=2", "cols=3")[0] == 0
+    (out / "notes.txt").write_text("mine\n")
+    # force=true over a larger scene: the whole scene is replaced, not the views it rewrites
+    assert _cli(capsys, "synth", *small, "rows=2", "cols=2", "force=true")[0] == 0
+    assert sorted(p.name for p in (out / "images_rain").iterdir()) == ["001.png", "002.png", "003.png", "004.png"]
+    assert MayaCsvParser(MayaCsvConfig()).parse(out).num_images == 4 and (out / "notes.txt").read_text() == "mine\n"
+    before = _snapshot(out)
+    # out of memory half-way: exit 2 with the simulator's knobs, the folder as it was, no leftovers
+    real = simulate.Simulation.render_view
+
+    def fail_on_third(self, k):
+        if k == 2:
+            raise MemoryError("std::bad_alloc")
+        return real(self, k)
+
+    monkeypatch.setattr(simulate.Simulation, "render_view", fail_on_third)
+    for target, extra in ((out, ["force=true"]), (tmp_path / "new" / "scene", [])):
+        code, err = _cli(capsys, "synth", "preset=demo", f"out={target}", "width=8", "rows=2", "cols=2", *extra)
+        line = _one_error_line(err)
+        assert code == 2 and "out of memory" in line and "width=" in line and "phases" not in line  # case 19
+    assert _snapshot(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
+    monkeypatch.setattr(simulate.Simulation, "render_view", real)
+    assert _cli(capsys, "synth", "preset=demo", f"out={tmp_path / 'new' / 'scene'}", "width=8", "rows=1",
+                "cols=1")[0] == 0  # the retry is not refused
+
+
+def test_case5_and_7_a_file_in_the_way_is_one_line_and_nothing_is_written(reference_run, toy_env,
+                                                                          tiny_scene_dir, tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("mine\n")
+    run = _run_copy(reference_run, tmp_path / "run")
+    before = _snapshot(tmp_path)
+    for command, argv in (
+            ("train", ["method=toy", *_toy_args(tiny_scene_dir, blocker / "o", "trainer.max_iters=2")]),
+            ("synth", ["preset=demo", f"out={blocker / 's'}", "width=8", "rows=1", "cols=1"]),
+            ("export", [run, f"out={blocker / 'e'}", "what=cameras", "device=cpu"]),
+            ("bench", ["methods=toy", f"scenes={tiny_scene_dir}", f"out={blocker / 'b'}", "device=cpu"])):
+        code, err = _cli(capsys, command, *argv)
+        assert code == 2 and f"{blocker} is a file, not a folder" in _one_error_line(err), (command, err)
+    assert _snapshot(tmp_path) == before
+
+
+@pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0,
+                    reason="root writes into read-only folders: run the suite as a user to test them")
+def test_case5_and_6_read_only_folders_are_refused_before_any_work(reference_run, toy_env, tiny_scene_dir,
+                                                                   tmp_path, capsys):
+    ro = tmp_path / "read-only"
+    ro.mkdir()
+    run = _run_copy(reference_run, tmp_path / "run")
+    for folder in (run / "checkpoints", run, ro):
+        folder.chmod(0o555)
+    try:
+        before = _snapshot(tmp_path)
+        for command, argv, names in (
+                ("train", ["method=toy", *_toy_args(tiny_scene_dir, ro / "o", "trainer.max_iters=2")], str(ro)),
+                ("train", [f"resume={run}", "trainer.max_iters=40"], str(run)),
+                ("synth", ["preset=demo", f"out={ro / 's'}", "width=8", "rows=1", "cols=1"], str(ro)),
+                ("export", [run, f"out={ro / 'e'}", "device=cpu"], str(ro)),
+                ("bench", ["methods=toy", f"scenes={tiny_scene_dir}", f"out={ro / 'b'}", "device=cpu"], str(ro)),
+                ("eval", [run, "device=cpu"], str(run)),  # case 6: before the evaluation, not after
+                ("render", [run, "device=cpu"], str(run))):
+            code, err = _cli(capsys, command, *argv)
+            line = _one_error_line(err)
+            assert code == 2 and names in line and "permission denied" in line, (command, err)
+        assert _snapshot(tmp_path) == before
+    finally:
+        for folder in (run / "checkpoints", run, ro):
+            folder.chmod(0o755)
+
+
+def test_a_failed_command_leaves_the_users_folders_as_they_were(reference_run, toy_env, tiny_scene_dir,
+                                                                 tmp_path, capsys, monkeypatch):
+    from rainyscape.engine.trainer import Trainer
+    from rainyscape.eval import export
+
+    out = tmp_path / "outputs"
+    before = _user_folder(out)
+
+    def out_of_memory(*args, **kwargs):
+        raise MemoryError("std::bad_alloc")
+
+    # a new run that fails before its first checkpoint leaves no run folder behind
+    monkeypatch.setattr(Trainer, "train", out_of_memory)
+    code, err = _cli(capsys, "train", "method=toy", *_toy_args(tiny_scene_dir, out, "trainer.max_iters=2"))
+    assert code == 2 and "out of memory" in _one_error_line(err)
+    assert _snapshot(out) == before and sorted(p.name for p in out.iterdir()) == ["images_rain", "x.json", "x.md"]
+    # an export that fails half-way (force=true or not) changes nothing in its folder
+    run = _run_copy(reference_run, tmp_path / "run")
+    real = export.export_cameras
+
+    def half(pipeline, folder, images=True):
+        real(pipeline, folder, images)
+        raise MemoryError("std::bad_alloc")
+
+    monkeypatch.setattr(export, "export_cameras", half)
+    code, err = _cli(capsys, "export", run, f"out={out}", "what=cameras", "device=cpu", "force=true")
+    assert code == 2 and "device=cpu" in _one_error_line(err)  # rs-export's own advice
+    assert _snapshot(out) == before and not [p for p in tmp_path.iterdir() if ".partial-" in p.name]
+
+
+def test_case9_every_synth_option_has_a_range(capsys):
+    for args, names in ((["density=-3"], "density"), (["opacity=5"], "opacity"), (["haze=2"], "haze"),
+                        (["workers=0"], "workers"), (["wind_deg=95"], "wind_deg"), (["rows=0"], "rows"),
+                        (["radius_min_mm=3", "radius_max_mm=0.5"], "radius_max_mm: must be at least radius_min_mm (3)"),
+                        (["mode=sometimes"], "mode=sometimes"), (["preset=moon"], "preset=moon")):
+        code, err = _cli(capsys, "synth", "out=/nonexistent/never-made", *args)
+        assert code == 2 and names in _one_error_line(err), args
+    assert not Path("/nonexistent/never-made").exists()
+
+
+def test_case11_and_15_rs_bench_checks_everything_before_it_writes(toy_env, tj_scene, tmp_path, capsys):
+    out = tmp_path / "results"
+    code, err = _cli(capsys, "bench", "methods=toy", f"scenes={tj_scene}", f"out={out}", "device=tpu")
+    assert code == 2 and "device=tpu" in _one_error_line(err)
+    if not torch.cuda.is_available():
+        code, err = _cli(capsys, "bench", "methods=toy", f"scenes={tj_scene}", f"out={out}", "device=cuda")
+        assert code == 2 and "CUDA is not available" in _one_error_line(err)
+    # case 15: clean images the parser does not find would make every cell n/a, silently
+    scene = tmp_path / "clean-elsewhere"
+    shutil.copytree(tj_scene, scene)
+    (scene / "images_wo_rain").rename(scene / "images_clean")
+    code, err = _cli(capsys, "bench", "methods=toy", f"scenes={scene}", f"out={out}", "device=cpu")
+    line = _one_error_line(err)
+    assert code == 2 and str(scene) in line and "no clean images" in line
+    assert not out.exists()
+
+
+def test_case12_a_second_rs_bench_of_the_same_results_is_refused(toy_env, tiny_scene_dir, tmp_path, capsys):
+    from rainyscape.engine.lock import RunLock
+
+    out = tmp_path / "results"
+    out.mkdir()
+    with RunLock(out, "rs-bench", name=".x.lock"):  # what the first rs-bench holds while it runs
+        code, err = _cli(capsys, "bench", "methods=toy", f"scenes={tiny_scene_dir}", "iters=2", f"out={out}",
+                         "name=x", "device=cpu")
+    line = _one_error_line(err)
+    assert code == 2 and f"benchmark {out / 'x.json'}: in use by rs-bench (pid {os.getpid()}" in line
+    assert sorted(p.name for p in out.iterdir()) == [".x.lock"]
+
+
+def test_case20_two_evaluations_of_the_same_weights_give_the_same_metrics(reference_run, tmp_path, capsys):
+    run = _run_copy(reference_run, tmp_path / "run")
+    first = (run / "metrics.json").read_bytes()  # the end-of-run evaluation of the training process
+    for _ in range(2):  # evaluated again, each time in this process
+        code, err = _cli(capsys, "train", f"resume={run}", "force=true")
+        assert code == 0, err
+        assert (run / "metrics.json").read_bytes() == first
+    assert "evaluating 8 of 12 views (" in err

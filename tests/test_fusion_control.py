@@ -8,11 +8,11 @@ import pytest
 import torch
 from torch import nn
 
-from rainyscape.components import ParamGroup, RainHead
+from rainyscape.components import MaskFusion, ParamGroup, RainHead
 from rainyscape.config import ComponentConfig, PipelineConfig
 from rainyscape.engine.pipeline import Pipeline
-from rainyscape.eval.protocol import evaluate_pipeline, fusion_mask, random_mask_like
-from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion, rain_mask
+from rainyscape.eval.protocol import evaluate_pipeline
+from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion, fuse, rain_mask, random_mask_like
 from _eval_fixtures import OracleField, TrueRainHead, make_scene
 
 KEY = "rain-mask-fusion"
@@ -53,12 +53,18 @@ def test_random_mask_has_the_same_coverage_and_is_seeded():
     assert int(random_mask_like(torch.zeros(1, 4, 4, dtype=torch.bool), 0).sum()) == 0
 
 
-def test_fusion_mask_is_the_post_process_mask():
+def test_the_fusion_reports_its_mask_coverage_and_control():
     g = torch.Generator().manual_seed(0)
     rain = (torch.rand(3, 16, 16, generator=g) > 0.9).float() * 0.3
+    rendered, rainy = torch.rand(3, 16, 16, generator=g), torch.rand(3, 16, 16, generator=g)
     post = RainMaskFusion(RainMaskFusion.Config(threshold=0.1, dilation=1))
-    assert torch.equal(fusion_mask(post, rain, rain, rain), rain_mask(rain, 0.1, 1))
-    assert fusion_mask(lambda r, x, y: r, rain, rain, rain) is None  # not a mask fusion: no control
+    assert isinstance(post, MaskFusion)
+    mask = rain_mask(rain, 0.1, 1)
+    assert torch.equal(post(rendered, rain, rainy), fuse(rendered, rainy, mask))
+    reported = post.control(rendered, rain, rainy, seed=5)
+    assert reported.coverage == pytest.approx(float(mask.float().mean()))
+    assert torch.equal(reported.control, fuse(rendered, rainy, random_mask_like(mask, 5)))
+    assert not isinstance(lambda r, x, y: r, MaskFusion)  # not a mask fusion: no control
 
 
 def test_true_rain_beats_its_random_control_clearly():
@@ -69,7 +75,7 @@ def test_true_rain_beats_its_random_control_clearly():
     assert fused > control + 3  # ... comes from finding the rain: a random mask gets far less
     assert s[f"train_{KEY}_ssim"] > s[f"train_{KEY}_random_ssim"]
     per_view = [r for r in evaluate_pipeline(_pipeline("true"))["per_view"] if r["split"] == "train"]
-    assert all(f"{KEY}_random_psnr" in r for r in per_view)
+    assert all(f"train_{KEY}_random_psnr" in r for r in per_view)
 
 
 def test_random_rain_scores_like_its_control():

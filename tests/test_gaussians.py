@@ -15,10 +15,12 @@ import torch
 from rainyscape.cameras import Window
 from rainyscape.components import LossContext, RenderOutput, TrainState
 from rainyscape.config import method_config
-from rainyscape.engine.pipeline import build_pipeline, compute_losses
+from rainyscape.engine.loss_sum import compute_losses
+from rainyscape.engine.pipeline import build_pipeline
 from rainyscape.errors import ConfigError
-from rainyscape.fields.gaussians.densify import DensifySchedule, replace_params
+from rainyscape.fields.gaussians.densify import DensifySchedule
 from rainyscape.fields.gaussians.field import GaussianField, growth_cap
+from rainyscape.fields.gaussians.ops import replace_params
 from rainyscape.fields.gaussians.ply import read_ply
 from rainyscape.fields.gaussians.sh import SH_C0, sh_basis, sh_to_rgb
 from rainyscape.losses.l1_ssim import L1SSIM
@@ -214,7 +216,7 @@ def test_grow_clones_small_and_splits_large(tiny_scene):
     field = make_field(tiny_scene, init_points=200)
     opts = adam_for(field)
     cb = field.callbacks()[0]
-    dens = cb.densifier
+    dens = cb.strategy
     n = field.num_gaussians
     with torch.no_grad():  # half of them below the clone / split size threshold
         field.params["scales"][::2] = math.log(0.5 * dens.grow_scale3d * dens.extent)
@@ -244,7 +246,7 @@ def test_prune_and_opacity_reset(tiny_scene):
     opts["opacities"].step()
     with torch.no_grad():
         field.params["opacities"][:50] = -10.0  # nearly transparent
-    dens = field.callbacks()[0].densifier
+    dens = field.callbacks()[0].strategy
     assert dens.prune(field.params, opts, prune_large=False) == 50
     assert field.num_gaussians == 250
     dens.reset_opacity(field.params, opts, 0.01)
@@ -267,7 +269,7 @@ def test_callback_schedule_sh_degree_lr_and_densification(tiny_scene):
     out = field.train().render(cams, Window.full(cams))
     out.rgb.mean().backward()
     cb.after_backward(state, out)
-    assert cb.densifier.count.sum() > 0
+    assert cb.strategy.count.sum() > 0
     before = field.num_gaussians
     cb.after_step(replace(state, step=9))  # 10th step: a refinement step
     assert field.num_gaussians > before and cb.last_stats["gaussians"] == field.num_gaussians
@@ -380,7 +382,7 @@ def test_short_fit_raises_heldout_psnr(tiny_scene, tmp_path):
     from rainyscape.imaging.metrics import psnr
 
     cfg, pipe = _quiet_pipeline("3dgs", tiny_scene, ["trainer.max_iters=200", "phases.fit.patch_size=0",
-                                                     "field.init_points=3000", "field.max_gaussians=5000",
+                                                     "field.init_points=3000", "field.init_fill=0", "field.max_gaussians=5000",
                                                      "field.min_refine_every=10", "trainer.log_every=5"])
     view = tiny_scene.eval_indices[0]
     clean = tiny_scene.clean_images[view].permute(2, 0, 1).float() / 255
@@ -428,12 +430,28 @@ def test_rainyscape_3dgs_trains_whole_views_and_updates_latents_on_a_crop(tiny_s
         return predict(view_ids, window)
 
     pipe.rain_head.forward = recording_forward
+    agr = pipe.losses["agr"][1]
+    recorded, estimate = [], agr.estimate
+
+    def recording_estimate(ctx):
+        theta, valid = estimate(ctx)
+        recorded.append((ctx.record, ctx.rendered.shape[-1], torch.rad2deg(theta)))
+        return theta, valid
+
+    agr.estimate = recording_estimate
     views = pipe.rain_head.view_states.detach().clone()
     trainer.train()
     size = (tiny_scene.width, tiny_scene.height)
     # 9 joint steps: one whole-view prediction, then 5 latent steps on 16 x 16 crops each
     assert seen == [size, *[(16, 16)] * 5] * 9
     assert not torch.equal(pipe.rain_head.view_states.detach(), views)
+    # the latent updates evaluate AGR on crops without recording: the logged angles are the
+    # network update's, on the whole view (issue 28: they were the last crop's)
+    assert [(r, w) for r, w, _ in recorded] == [(True, tiny_scene.width), *[(False, 16)] * 5] * 9
+    last_update = [deg for r, _, deg in recorded if r][-1]
+    logged = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    streak = [v for k, v in logged[-1].get("metrics", {}).items() if k.startswith("agr.streak_deg")]
+    assert streak and abs(streak[0] - float((last_update[0, 0] + 90) % 180)) < 1e-3
 
 
 def test_rainyscape_plus_is_rainyscape_3dgs_with_multiview_rain_and_capped_tv():
@@ -446,3 +464,24 @@ def test_rainyscape_plus_is_rainyscape_3dgs_with_multiview_rain_and_capped_tv():
             assert plus.losses[key] == paper.losses[key], key
     assert (plus.field, plus.rain_head, plus.phases, plus.trainer) == \
         (paper.field, paper.rain_head, paper.phases, paper.trainer)
+
+
+def test_depth_guided_fill_lands_on_the_surfaces_the_sparse_points_sample(tiny_scene):
+    """field.init_fill: points on training pixels at the depth of their nearest sparse points
+    in the image; with sparse points on the surfaces, the fill lands on them too."""
+    from rainyscape.fields.gaussians.field import depth_guided_points
+
+    sparse = tiny_scene.points[torch.randperm(len(tiny_scene.points), generator=torch.Generator().manual_seed(0))[:400]]
+    points, colors = depth_guided_points(tiny_scene, sparse, 2000, torch.Generator().manual_seed(1))
+    assert points.shape == (2000, 3) and colors.shape == (2000, 3) and 0 <= colors.min() <= colors.max() <= 1
+    errors = []
+    for v in tiny_scene.train_indices:
+        uv, z = tiny_scene.cameras[[v]].project(points)
+        x, y = uv[0, :, 0].long(), uv[0, :, 1].long()
+        inside = (z[0] > 0) & (x >= 0) & (x < tiny_scene.width) & (y >= 0) & (y < tiny_scene.height)
+        truth = tiny_scene.depths[v, y[inside], x[inside]]
+        ok = torch.isfinite(truth)
+        errors.append(((z[0][inside][ok] - truth[ok]).abs() / truth[ok]))
+    assert torch.cat(errors).median() < 0.05  # median depth error under 5 % (true depth scores only)
+    field = make_field(tiny_scene, init_points=300, init_fill=700)
+    assert field.num_gaussians == 1000

@@ -22,7 +22,7 @@ RANKS = {
     "engine": 5, "synth": 5, "process": 5,
     "eval": 6,
     "workflow": 7,
-    "bench": 8,
+    "comparison": 8,
     "cli": 9,
     "testing": 10,  # helpers of tests and benchmarks: nothing in the package imports them
 }

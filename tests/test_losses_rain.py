@@ -55,6 +55,10 @@ def test_total_variation_by_hand():
     b = torch.tensor([[[[0.0, 1.0], [3.0, 3.0]]]])
     # |dx|: 1 + 0, |dy|: 3 + 2, over 4 elements
     assert float(TotalVariation()(_ctx(b, b, None))) == pytest.approx(6 / 4)
+    # colour: over the element count (3 channels x 4 pixels), the scale the weights were
+    # measured at (the authors' pixel count is 3 times stronger: docs/rain.md, defect 2)
+    rgb = torch.cat([b, 2 * b, 0 * b], 1)
+    assert float(TotalVariation()(_ctx(rgb, rgb, None))) == pytest.approx((6 + 12 + 0) / 12)
 
 
 def test_capped_total_variation_leaves_strong_edges_alone():

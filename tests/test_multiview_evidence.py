@@ -46,3 +46,45 @@ def test_evidence_finds_the_rain_with_the_true_depth(tiny_scene):
     assert corr > 0.45, float(corr)  # measured 0.61 here, 0.72 on the 128 px crossroad
     rainy_pixels = t > 0.05
     assert e[rainy_pixels].mean() > 4 * e[~rainy_pixels].mean()  # measured 8.9x: rain stands out
+
+
+def test_occluded_neighbours_do_not_vote_and_the_evidence_finds_the_rain_better(tiny_scene):
+    """A neighbour whose own depth at the projection is nearer than the point sees an
+    occluder, not the point: without the test its colour joins the median (issue 28)."""
+    s = tiny_scene
+    images = s.images.permute(0, 3, 1, 2).float() / 255
+    depths = s.depths[:, None].clone()  # ground-truth depth stands in for the rendered depth here
+    depths[~torch.isfinite(depths)] = 1e6  # sky: far
+    table = neighbour_table(s.cameras.centers, s.train_indices, 6)
+
+    def correlation(a, b):
+        a, b = a - a.mean(), b - b.mean()
+        return float((a * b).sum() / (a.norm() * b.norm()))
+
+    scores = {}
+    for test in (False, True):
+        per_view = []
+        for v in s.train_indices:
+            cams = s.cameras[[v]]
+            points = backproject(cams, Window.full(cams), depths[[v]])
+            colours, valid = neighbour_colours(points, table[[v]], s.cameras, images,
+                                               depths if test else None)
+            evidence, _ = rain_evidence(images[[v]], colours, valid)
+            per_view.append(correlation(evidence.mean(1), s.rain_layers[v].mean(-1)))
+        scores[test] = sum(per_view) / len(per_view)
+    assert scores[True] > scores[False] + 0.01, scores
+
+
+def test_an_unknown_neighbour_depth_keeps_its_vote():
+    from rainyscape.cameras import Cameras
+
+    c2w = torch.eye(4)[None].repeat(2, 1, 1)
+    cams = Cameras(c2w, torch.full((2,), 10.0), torch.full((2,), 10.0), torch.full((2,), 4.0),
+                   torch.full((2,), 4.0), 8, 8)
+    images = torch.rand(2, 3, 8, 8)
+    points = torch.tensor([0.0, 0.0, 2.0]).expand(1, 1, 1, 3)  # the principal point at z = 2
+    near = torch.full((2, 1, 8, 8), 1.0)  # an occluder at z = 1 in every view
+    unknown = torch.full((2, 1, 8, 8), float("nan"))
+    neighbours = torch.tensor([[1]])
+    assert not neighbour_colours(points, neighbours, cams, images, near)[1].any()
+    assert neighbour_colours(points, neighbours, cams, images, unknown)[1].all()

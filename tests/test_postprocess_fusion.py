@@ -48,3 +48,18 @@ def test_bad_options():
         RainMaskFusion(RainMaskFusion.Config(threshold=-1))
     with pytest.raises(ConfigError):
         RainMaskFusion(RainMaskFusion.Config(dilation=-1))
+
+
+def test_default_threshold_follows_each_views_own_rain_and_is_never_empty():
+    """The fixed 0.02 left the mask empty on real photos (the head's rain stayed below it);
+    the default finds the streaks that stand out of the view's own predicted rain."""
+    gen = torch.Generator().manual_seed(0)
+    for base, streak in ((0.002, 0.012), (0.05, 0.2)):  # a faint head and a strong one
+        rain = base + 0.001 * torch.rand(3, 32, 32, generator=gen)
+        rain[:, 4:28, 10] += streak  # one vertical streak, 24 of 1024 pixels
+        fusion = RainMaskFusion(RainMaskFusion.Config(dilation=0))
+        mask = fusion.mask(rain)[0]
+        assert mask[4:28, 10].all()  # the streak
+        assert mask.sum() <= 24 + 10  # and hardly anything else
+        fixed = RainMaskFusion(RainMaskFusion.Config(threshold=0.02, dilation=0)).mask(rain)
+        assert fixed.any() == (base > 0.02)  # the old constant: empty under a faint head

@@ -71,6 +71,37 @@ def test_written_pngs_have_no_exif(tmp_path):
         assert im.size == (32, 48)  # turned upright by the EXIF orientation
 
 
+def test_exif_focal_length_becomes_pixels_of_the_written_frame(tmp_path):
+    """A 26 mm equivalent lens (a phone's) on a 1080 x 1440 photo is 26 / 43.27 x 1800 px; a
+    resize scales it, a crop does not; photos that disagree or lack it give no prior."""
+    from PIL import Image
+
+    from rainyscape.process.frames import (Frame, exif_focal_35mm, focal_pixels, frame_scale,
+                                           shared_focal)
+
+    assert focal_pixels(26.0, 1080, 1440) == pytest.approx(1081.67, abs=0.01)
+    assert frame_scale((1440, 1080), FrameOptions(max_side=720)) == pytest.approx(0.5)
+    assert frame_scale((1440, 1080), FrameOptions(crop=(0.25, 0.25, 0, 0))) == 1.0
+    # cropped to 720 x 1080, then the long side to 540: half the pixels per unit of angle
+    assert frame_scale((1440, 1080), FrameOptions(crop=(0.25, 0.25, 0, 0), max_side=540)) == pytest.approx(0.5)
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[0xA405] = 26  # FocalLengthIn35mmFilm
+    for k in range(2):
+        Image.fromarray(texture(k, (96, 72))).save(folder / f"p{k}.jpg", exif=exif)
+    Image.fromarray(texture(5, (96, 72))).save(tmp_path / "bare.jpg")
+    assert exif_focal_35mm(folder / "p0.jpg") == 26.0
+    assert exif_focal_35mm(tmp_path / "bare.jpg") is None
+    frames = copy_photos(folder, tmp_path / "out", FrameOptions(max_side=48), progress=False)
+    expected = focal_pixels(26.0, 72, 96) * 0.5
+    assert [f.focal_px for f in frames] == pytest.approx([expected, expected])
+    assert shared_focal(frames) == pytest.approx(expected)
+    assert shared_focal([*frames, Frame("x.png", "x.jpg", 1.0, None)]) is None  # one without
+    assert shared_focal([*frames, Frame("x.png", "x.jpg", 1.0, expected * 1.5)]) is None  # a zoom
+
+
 @pytest.mark.parametrize("case, message", [
     ("unreadable", "cannot read the video"),
     ("empty", "cannot read the video"),

@@ -52,3 +52,15 @@ def test_registration_check():
 def test_bad_sfm_options(field, value):
     with pytest.raises(ConfigError):
         SfmOptions(**{field: value}).validate()
+
+
+def test_report_lists_each_mapping_tried():
+    from rainyscape.process.sfm import mapping_attempt
+
+    first, second = report(8), report(9)
+    second.attempts = [mapping_attempt("default", first, False), mapping_attempt("relaxed", second, True)]
+    assert second.to_json()["attempts"][1] == {"mapper": "relaxed", "registered": 9,
+                                               "mean_reprojection_error_px": 0.5, "num_points": 100,
+                                               "kept": True}
+    assert "default mapping: 8, relaxed mapping: 9 (kept)" in second.summary()
+    assert "mapping:" not in report(10).summary()  # one attempt: nothing to say

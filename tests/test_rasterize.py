@@ -15,6 +15,7 @@ from rainyscape.cameras import Window
 from rainyscape.errors import ConfigError
 from rainyscape.fields.gaussians.projection import candidate_gaussians, project_gaussians
 from rainyscape.fields.gaussians.rasterize import rasterize, resolve_backend
+from rainyscape.fields.gaussians.rasterize_cpp import cpp_available
 from rainyscape.fields.gaussians.rasterize_gsplat import (BUILD_MESSAGE, forget_gsplat_checks,
                                                           gsplat_installed, gsplat_usable)
 from rainyscape.fields.gaussians.rasterize_torch import bin_gaussians, composite, min_sigma_in_boxes
@@ -80,6 +81,31 @@ def test_gradients_match_dense_reference(opaque):
         grads.append(torch.autograd.grad(loss, params))
     for name, g1, g2 in zip(("means", "quats", "scales", "opacities", "colors"), *grads):
         assert g2.abs().max() > 0, name
+        assert torch.allclose(g1, g2, rtol=1e-7, atol=1e-9 * float(g2.abs().max())), name
+
+
+def test_large_gaussians_skip_the_quarter_split_and_match_dense_reference():
+    """Gaussians spanning many tiles are composited on the 16 x 16 tiles (no 8 x 8 split);
+    images and gradients still equal the dense reference."""
+    import rainyscape.fields.gaussians.rasterize_torch as rt
+
+    params, viewmats, ks = random_scene(80, seed=12, dtype=torch.float64)
+    params[2] = params[2] * 4.0  # large: many tiles each
+    with torch.no_grad():
+        proj = project_gaussians(*params[:4], viewmats, ks, W, H)
+    pairs = len(bin_gaussians(proj, W, H).gaussian_ids)
+    assert pairs > rt.SPLIT_MAX_PAIRS * int(proj.visible.sum())  # the unsplit path
+    for p in params:
+        p.requires_grad_(True)
+    g = torch.Generator().manual_seed(0)
+    w_feat = torch.randn(2, H, W, 4, generator=g, dtype=torch.float64)
+    grads, images = [], []
+    for f, a in render_both(params, viewmats, ks):
+        images.append((f, a))
+        grads.append(torch.autograd.grad((f * w_feat).sum() + a.sum(), params))
+    (f1, a1), (f2, a2) = images
+    assert torch.allclose(f1, f2, atol=1e-10) and torch.allclose(a1, a2, atol=1e-10)
+    for name, g1, g2 in zip(("means", "quats", "scales", "opacities", "colors"), *grads):
         assert torch.allclose(g1, g2, rtol=1e-7, atol=1e-9 * float(g2.abs().max())), name
 
 
@@ -262,7 +288,10 @@ def test_background_empty_and_culled_scenes():
 
 
 def test_backend_choice():
-    assert resolve_backend("auto", torch.device("cpu")) == "torch"
+    # On the CPU, auto is the compiled kernel when it was built (tests/test_rasterize_cpp.py
+    # checks that it was, where a compiler is present), else the torch rasteriser.
+    assert resolve_backend("auto", torch.device("cpu")) == ("cpp" if cpp_available() else "torch")
+    assert resolve_backend("torch", torch.device("cpu")) == "torch"
     with pytest.raises(ConfigError):
         resolve_backend("gsplat", torch.device("cpu"))
     with pytest.raises(ConfigError):

@@ -59,7 +59,7 @@ def fake_run(tmp_path_factory) -> Path:
 
 
 def test_log_reader_skips_a_truncated_line(fake_run):
-    train, evals = read_log(fake_run / "log.jsonl")
+    train, evals = read_log(fake_run)
     assert len(train) == 60 and len(evals) == 3
 
 

@@ -218,8 +218,11 @@ def test_generate_refuses_non_empty_folder_and_bad_options(tmp_path):
 
 
 def test_density_beyond_the_drop_budget_is_refused(tmp_path):
-    with pytest.raises(ConfigError, match="lower density"):
+    with pytest.raises(ConfigError, match="lower density"):  # within density's range, too many drops here
+        generate(tmp_path / "x", "demo", rows=1, cols=1, width=8, height=8, density=1000)
+    with pytest.raises(ConfigError, match="density: must be between 0 and 1000"):
         generate(tmp_path / "x", "demo", rows=1, cols=1, width=8, height=8, density=1e6)
+    assert list(tmp_path.iterdir()) == []  # nothing left behind, staging folder included
 
 
 @pytest.mark.slow  # two spawned processes each import torch

@@ -31,7 +31,7 @@ def test_cli_writes_a_scene_and_reports_its_strength(tmp_path, capsys):
 @pytest.mark.parametrize("args,message", [
     (["out=x", "densty=3"], "unknown key 'densty'. Did you mean 'density'?"),
     (["out=x", "rows=two"], "rows: cannot read 'two'"),
-    (["out=x", "rows=0"], "rows must be at least 1, got 0"),
+    (["out=x", "rows=0"], "rows: must be between 1 and 100, got 0"),
     (["preset=demo"], "where to write?"),
     (["out=x", "--fast"], "unknown option --fast"),
 ])

@@ -18,7 +18,7 @@ from rainyscape.synth import generate
 from rainyscape.synth.oracle import rerender_clean
 from rainyscape.synth.params import RainConfig
 from rainyscape.synth.rain import make_drop_field, render_rain
-from rainyscape.synth.render import SceneRenderer
+from rainyscape.synth.raycast import SceneRenderer
 from rainyscape.synth.rig import make_rig
 from rainyscape.synth.scenes import build_scene
 

@@ -29,17 +29,24 @@ from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from rainyscape.config.schema import DEVICES, MAX_STEPS, SEED_MAX  # noqa: F401 (for the commands' options)
 from rainyscape.errors import ConfigError
 
 HELP_FLAGS = ("--help", "-h")
+# What to lower when a command that renders a trained run (rs-eval, rs-render, rs-export) runs
+# out of memory: it renders with the run's own chunk
+READ_OOM_HINT = "free memory (close other programs), or pass device=cpu when the GPU ran out"
 HELP_COLUMN = 32  # where --help starts an option's help text (at most)
 
 
 def opt(default: Any, help: str = "", lo: float | None = None, hi: float | None = None,
-        above: float | None = None) -> Any:
-    """A dataclass field with a default, the line ``--help`` shows for it and optionally the
-    range its value must lie in (``lo`` .. ``hi``, greater than ``above``)."""
-    return field(default=default, metadata={"help": help, "min": lo, "max": hi, "above": above})
+        above: float | None = None, choices: tuple[str, ...] | None = None) -> Any:
+    """A dataclass field with a default, the line ``--help`` shows for it and the range its
+    value must lie in (``lo`` .. ``hi``, greater than ``above``) or the ``choices`` it must be
+    one of (``NAME:N`` stands for NAME:0, NAME:1, ...). Both are checked as the command line
+    is read, before any work."""
+    return field(default=default, metadata={"help": help, "min": lo, "max": hi, "above": above,
+                                            "choices": tuple(choices) if choices else None})
 
 
 @dataclass(frozen=True)
@@ -54,6 +61,7 @@ class Command:
     overrides: str = ""  # "" | "dotted" | "any": which unknown keys pass through (see module doc)
     dashed: bool = False  # also --key VALUE and --key=VALUE
     positional: str = ""  # what positional arguments are (for errors); "": none accepted
+    oom_hint: str = ""  # what to lower when the command runs out of memory ("": training's knobs)
 
 
 @dataclass
@@ -193,10 +201,9 @@ def run_dir(args: Args, command: Command) -> Path:
     if len(args.positional) != 1:
         raise ConfigError(f"{command.name}: expected one RUN_DIR (a folder made by rs-train), "
                           f"got {len(args.positional)} positional arguments; see {command.name} --help")
-    path = Path(args.positional[0]).expanduser()
-    if not (path / "config.yml").is_file():
-        raise ConfigError(f"{path}: not a run folder (no config.yml); pass the folder rs-train printed")
-    return path
+    from rainyscape.engine.run_folder import RunFolder  # light: no torch
+
+    return RunFolder.check(Path(args.positional[0]).expanduser()).path
 
 
 # --------------------------------------------------------------------------------- help
@@ -231,6 +238,10 @@ def _option_lines(cls: type, dashed: bool) -> list[tuple[str, str]]:
 
 def _range_text(metadata: Any) -> str:
     lo, hi, above = metadata.get("min"), metadata.get("max"), metadata.get("above")
+    if metadata.get("choices"):
+        from rainyscape.config.schema import choices_text
+
+        return "one of " + choices_text(metadata["choices"])
     if lo is None and hi is None and above is None:
         return ""
     from rainyscape.config.schema import range_text  # config imports nothing heavy

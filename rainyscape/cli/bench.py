@@ -8,6 +8,8 @@ Scenes: a scene set (cpu: five presets at 128 px, the six-method table in an hou
 with jobs=2 threads=1; paper: 512 px, 5 x 10 views, the paper's step counts, for a GPU), or
 simulator presets (simulated once into OUT/scenes) and scene folders; demo alone is the
 embedded demo. A set fixes size, views and steps per field; scene_width= ... iters= override.
+A scene folder is read by its own format's parser (dataparser=NAME names one for every folder)
+and takes that parser's options: dataparser.clean=FOLDER scores against its clean photos.
 Before anything trains, every cell's budget (steps, mean pixels per step) is computed and
 methods training the same field must match (exit 2 naming them, unless allow_unequal=true).
 Dotted keys (trainer.eval_every=0, ...) go to every cell; METHOD:KEY.PATH=value to that
@@ -18,24 +20,30 @@ and resumes interrupted ones. jobs=N trains N cells at once, each with threads= 
 scene re-rendered), the rainy input, each method, each fused row with its gain over the input
 and its random-mask control, and a budget column (docs/evaluation.md, "How to read the
 tables"); with ablation=SCENE, the loss ablation of ablation_method (the paper's Table II).
+
+In OUT, a benchmark writes only its own NAME.json, NAME.md, runs/NAME/ and scenes/ (each
+recognised by what rs-bench writes in it); a file of other origin in their place is refused,
+naming it, before anything runs, unless force=true, which starts benchmark NAME afresh. A
+second rs-bench of the same OUT and NAME while one runs is refused (the benchmark is locked).
 """
 
 from __future__ import annotations
 
 import sys
 
-from rainyscape.bench.options import BenchOptions
+from rainyscape.comparison.options import BenchOptions
 from rainyscape.cli import run_cli
 from rainyscape.cli.args import Command, parse, print_help
 
-COMMAND = Command("rs-bench", __doc__, BenchOptions, overrides="dotted")
+COMMAND = Command("rs-bench", __doc__, BenchOptions, overrides="dotted",
+                  oom_hint="train fewer cells at once (jobs=) or smaller scenes (scene_width=)")
 
 
 def main(argv: list[str]) -> int:
     args = parse(argv, COMMAND)
     if args.help:
         return print_help(COMMAND)
-    from rainyscape.bench.run import run_bench
+    from rainyscape.comparison.run import run_bench
 
     command = " ".join(["rs-bench", *argv])
     json_path, md_path, failed = run_bench(args.options, args.overrides, command)

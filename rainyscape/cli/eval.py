@@ -17,17 +17,17 @@ import sys
 from dataclasses import dataclass
 
 from rainyscape.cli import run_cli
-from rainyscape.cli.args import Command, opt, parse, print_help, run_dir
+from rainyscape.cli.args import DEVICES, MAX_STEPS, READ_OOM_HINT, Command, opt, parse, print_help, run_dir
 
 
 @dataclass
 class EvalOptions:
-    device: str = opt("auto", "auto | cpu | cuda")
+    device: str = opt("auto", "the device to evaluate on", choices=DEVICES)
     data: str = opt("", "the scene folder, if it moved since training (config.yml names the old one)")
-    step: int | None = opt(None, "the checkpoint's step (default: the latest)", lo=0)
+    step: int | None = opt(None, "the checkpoint's step (default: the latest)", lo=0, hi=MAX_STEPS)
 
 
-COMMAND = Command("rs-eval", __doc__, EvalOptions, positional="RUN_DIR")
+COMMAND = Command("rs-eval", __doc__, EvalOptions, positional="RUN_DIR", oom_hint=READ_OOM_HINT)
 
 
 def print_summary(summary: dict) -> None:
@@ -41,7 +41,11 @@ def main(argv: list[str]) -> int:
         return print_help(COMMAND)
     folder, opts = run_dir(args, COMMAND), args.options
     from rainyscape.engine.run import load_run
+    from rainyscape.engine.run_folder import RunFolder
     from rainyscape.eval.protocol import evaluate_pipeline, write_metrics
+    from rainyscape.formats.output import check_writable
+
+    check_writable(folder, "rs-eval writes metrics.json, report.html and renders/strips there")
 
     pipeline, step = load_run(folder, opts.device, opts.step, data=opts.data)
     print(f"evaluating every view ({pipeline.scene.num_images}) of {folder} at step {step}",
@@ -53,7 +57,8 @@ def main(argv: list[str]) -> int:
     print_summary(metrics["summary"])
     if not metrics["lpips"]["available"]:
         print(f"  lpips: unavailable ({metrics['lpips']['reason']})")
-    print(f"wrote {folder / 'metrics.json'} and {folder / 'report.html'}")
+    written = RunFolder(folder)
+    print(f"wrote {written.metrics_file} and {written.report_file}")
     return 0
 
 

@@ -18,7 +18,8 @@ import sys
 from dataclasses import dataclass
 
 from rainyscape.cli import run_cli
-from rainyscape.cli.args import Command, opt, parse, print_help
+from rainyscape.cli.args import SEED_MAX, Command, opt, parse, print_help
+from rainyscape.process.sfm import CAMERA_MODELS, MATCHERS
 
 KINDS = ("video", "images")
 
@@ -27,24 +28,32 @@ KINDS = ("video", "images")
 class ProcessArgs:
     data: str = opt("", "the video file (video) or the folder of photos (images)")
     output_dir: str = opt("", "scene folder to write")
-    num_frames: int = opt(100, "video: frames kept, spread over the clip", lo=2)
+    num_frames: int = opt(100, "video: frames kept, spread over the clip", lo=2, hi=100_000)
     crop: tuple[float, float, float, float] = opt((0.0, 0.0, 0.0, 0.0),
                                                   "fractions of the frame cut from the top, bottom, left, right",
                                                   lo=0.0, hi=1.0)
-    max_side: int = opt(0, "downsize so the longer side is at most this many pixels (0: keep)", lo=0)
-    camera_model: str = opt("SIMPLE_RADIAL", "COLMAP camera model fitted before undistortion")
+    max_side: int = opt(0, "downsize so the longer side is at most this many pixels (0: keep)", lo=0, hi=65536)
+    camera_model: str = opt("SIMPLE_RADIAL", "COLMAP camera model fitted before undistortion",
+                            choices=CAMERA_MODELS)
     camera_per_image: bool = opt(False, "one camera per frame instead of one shared camera")
-    matcher: str = opt("", "sequential | exhaustive (default: sequential for video, exhaustive for images)")
-    overlap: int = opt(10, "sequential matching: neighbours matched per frame", lo=1)
+    matcher: str = opt("", "feature matching (default: sequential for video, exhaustive for images)",
+                       choices=("", *MATCHERS))
+    overlap: int = opt(10, "sequential matching: neighbours matched per frame", lo=1, hi=10_000)
     loop_detection: bool = opt(True, "sequential matching: detect loops")
     vocab_tree: str = opt("", "COLMAP vocabulary tree for loop detection (default: built from the clip)")
-    max_features: int = opt(8192, "SIFT features per frame", lo=64)
+    max_features: int = opt(8192, "SIFT features per frame", lo=64, hi=1_000_000)
+    affine_shape: bool = opt(True, "SIFT with affine shape estimation (features that survive the viewpoint "
+                                   "changes of an orbit)")
+    domain_size_pooling: bool = opt(False, "DSP-SIFT descriptors (slower)")
+    exif_focal: bool = opt(True, "photos: start from the focal length their EXIF gives")
+    retry: bool = opt(True, "when frames are left out, map again with relaxed registration "
+                            "thresholds and keep the model that registers more")
     min_registered: float = opt(0.5, "fail when fewer frames than this fraction register", hi=1.0, above=0.0)
     init_min_tri_angle: float = opt(16.0, "degrees of parallax the first frame pair needs (lower it, "
                                           "e.g. to 4, for narrow baselines such as a stereo pair)",
                                     above=0.0, hi=90.0)
-    num_threads: int = opt(-1, "CPU threads (-1: all)", lo=-1)
-    seed: int = opt(0, "random seed")
+    num_threads: int = opt(-1, "CPU threads (-1: all)", lo=-1, hi=1024)
+    seed: int = opt(0, "random seed", lo=0, hi=SEED_MAX)
     overwrite: bool = opt(False, "replace the scene rs-process-data wrote in the output folder; other files are kept")
     quiet: bool = opt(False, "no progress output")
     verbose: bool = opt(False, "show COLMAP's own log")
@@ -83,7 +92,9 @@ def main(argv: list[str]) -> int:
     sfm = SfmOptions(camera_model=opts.camera_model, single_camera=not opts.camera_per_image,
                      matcher=opts.matcher or ("sequential" if kind == "video" else "exhaustive"),
                      overlap=opts.overlap, loop_detection=opts.loop_detection, vocab_tree=opts.vocab_tree,
-                     max_features=opts.max_features, min_registered=opts.min_registered,
+                     max_features=opts.max_features, affine_shape=opts.affine_shape,
+                     domain_size_pooling=opts.domain_size_pooling, exif_focal=opts.exif_focal,
+                     retry=opts.retry, min_registered=opts.min_registered,
                      init_min_tri_angle=opts.init_min_tri_angle,
                      num_threads=opts.num_threads, seed=opts.seed, verbose=opts.verbose)
     options = ProcessOptions(frames=frames, sfm=sfm, overwrite=opts.overwrite, progress=not opts.quiet)

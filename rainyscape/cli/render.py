@@ -19,38 +19,38 @@ import sys
 from dataclasses import dataclass
 
 from rainyscape.cli import run_cli
-from rainyscape.cli.args import Command, opt, parse, print_help, run_dir
+from rainyscape.cli.args import DEVICES, READ_OOM_HINT, SEED_MAX, Command, opt, parse, print_help, run_dir
 
 
 @dataclass
 class RenderArgs:
     views: str = opt("all", "comma-separated view names / indices, or all | train | heldout")
     video: bool = opt(True, "render path.mp4 along a camera path")
-    path: str = opt("views", "the video's camera path: views (through the training views) | spiral")
-    frames: int = opt(60, "video frames", lo=1)
-    fps: int = opt(15, "video frames per second", lo=1)
-    device: str = opt("auto", "auto | cpu | cuda")
+    path: str = opt("views", "the video's camera path: views (through the training views) | spiral",
+                    choices=("views", "spiral"))
+    frames: int = opt(60, "video frames", lo=1, hi=100_000)
+    fps: int = opt(15, "video frames per second", lo=1, hi=240)
+    device: str = opt("auto", "the device to render on", choices=DEVICES)
     data: str = opt("", "the scene folder, if it moved since training (config.yml names the old one)")
     embedding_study: bool = opt(False, "the paper's Fig. 8 instead of the renders")
-    patch: int = opt(100, "embedding study: side of the centred window (pixels)", lo=1)
-    variance: float = opt(0.5, "embedding study: variance of the noise added to s, v, p", lo=0.0)
-    seed: int = opt(0, "embedding study: noise seed")
+    patch: int = opt(100, "embedding study: side of the centred window (pixels)", lo=1, hi=8192)
+    variance: float = opt(0.5, "embedding study: variance of the noise added to s, v, p", lo=0.0, hi=100.0)
+    seed: int = opt(0, "embedding study: noise seed", lo=0, hi=SEED_MAX)
 
 
-COMMAND = Command("rs-render", __doc__, RenderArgs, positional="RUN_DIR")
+COMMAND = Command("rs-render", __doc__, RenderArgs, positional="RUN_DIR", oom_hint=READ_OOM_HINT)
 
 
 def main(argv: list[str]) -> int:
-    from rainyscape.errors import ConfigError
-
     args = parse(argv, COMMAND)
     if args.help:
         return print_help(COMMAND)
     folder, opts = run_dir(args, COMMAND), args.options
-    if opts.path not in ("views", "spiral"):
-        raise ConfigError(f"rs-render: path must be views or spiral, got '{opts.path}'")
     from rainyscape.engine.run import load_run
     from rainyscape.eval.report import write_report
+    from rainyscape.formats.output import check_writable
+
+    check_writable(folder, "rs-render writes renders/ and report.html there")
 
     pipeline, step = load_run(folder, opts.device, data=opts.data)
     if opts.embedding_study:
@@ -60,7 +60,7 @@ def main(argv: list[str]) -> int:
                                     seed=opts.seed)
         print(f"wrote {out} and {out.with_suffix('.json')}")
     else:
-        from rainyscape.eval.render import RenderOptions, render_run
+        from rainyscape.eval.run_renders import RenderOptions, render_run
 
         result = render_run(pipeline, folder, RenderOptions(opts.views, opts.video, opts.path,
                                                             opts.frames, opts.fps))

@@ -4,10 +4,14 @@ Usage:
   rs-synth preset=NAME out=DIR [key=value ...]
   rs-synth --list                 presets with their scene and rain strength
 
-Writes rainy and clean images, depth, the true rain layer and cameras.csv into DIR (never
-into a non-empty folder without force=true) and prints the rainy-vs-clean PSNR / SSIM (the
-rain's strength) and the rain's coverage. Rain options default to the preset's values (the
-base values are shown).
+Writes rainy and clean images, depth, the true rain layer and cameras.csv into DIR and
+prints the rainy-vs-clean PSNR / SSIM (the rain's strength) and the rain's coverage. Rain
+options default to the preset's values (the base values are shown).
+
+A non-empty DIR is refused unless force=true, which replaces every entry of a scene there
+(images_rain/, images_wo_rain/, depth/, rain/, haze/, cameras.csv, scene.json) as a whole and
+keeps the rest. The scene is built beside DIR and moved in when complete: a failed or
+interrupted run leaves DIR as it was.
 """
 
 from __future__ import annotations
@@ -16,26 +20,33 @@ import sys
 from dataclasses import dataclass
 
 from rainyscape.cli import run_cli
-from rainyscape.cli.args import Command, opt, parse, print_help
+from rainyscape.cli.args import SEED_MAX, Command, opt, parse, print_help
 from rainyscape.synth.params import RainConfig
+from rainyscape.synth.presets import PRESETS
 
 
 @dataclass
 class SynthArgs:
-    preset: str = opt("demo", "simulator preset (rs-synth --list)")
+    preset: str = opt("demo", "simulator preset (rs-synth --list)", choices=tuple(PRESETS))
     out: str = opt("", "folder to write (required)")
-    rows: int | None = opt(None, "camera rows (default: the preset's)")
-    cols: int | None = opt(None, "camera columns (default: the preset's)")
-    width: int | None = opt(None, "image width in pixels (default: the preset's)")
-    height: int | None = opt(None, "image height in pixels (default: the preset's, or square with width=)")
-    mode: str = opt("static", "static (one rain field, like the paper's Maya data) | dynamic (rain moves)")
-    trajectory: str = opt("sphere", "sphere | video")
-    seed: int = opt(0, "random seed")
-    workers: int | None = opt(None, "processes (default: 1 for small jobs, else every core)")
-    force: bool = opt(False, "write into a non-empty folder")
+    rows: int | None = opt(None, "camera rows (default: the preset's)", lo=1, hi=100)
+    cols: int | None = opt(None, "camera columns (default: the preset's)", lo=1, hi=100)
+    width: int | None = opt(None, "image width in pixels (default: the preset's)", lo=1, hi=8192)
+    height: int | None = opt(None, "image height in pixels (default: the preset's, or square with width=)",
+                             lo=1, hi=8192)
+    mode: str = opt("static", "static: one rain field, like the paper's Maya data; dynamic: rain moves",
+                    choices=("static", "dynamic"))
+    trajectory: str = opt("sphere", "camera path", choices=("sphere", "video"))
+    seed: int = opt(0, "random seed", lo=0, hi=SEED_MAX)
+    workers: int | None = opt(None, "processes (default: 1 for small jobs, else every core)", lo=1, hi=256)
+    force: bool = opt(False, "write into a non-empty folder, replacing every entry of a scene there as a "
+                             "whole (the rest of the folder is kept)")
 
 
-COMMAND = Command("rs-synth", __doc__, SynthArgs, more=(("Rain options", RainConfig),), actions=("--list",))
+OOM_HINT = ("lower width= and height= or the views (rows=, cols=), or use fewer workers= (each holds "
+            "the scene)")
+COMMAND = Command("rs-synth", __doc__, SynthArgs, more=(("Rain options", RainConfig),), actions=("--list",),
+                  oom_hint=OOM_HINT)
 
 
 def print_presets() -> None:

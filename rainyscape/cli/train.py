@@ -33,7 +33,8 @@ from rainyscape.cli.args import Command, opt, parse, print_help
 @dataclass
 class TrainArgs:
     method: str = opt("", "the method to train (rs-train --list)")
-    resume: str = opt("", "a run folder to continue (only trainer.* and data= overrides)")
+    resume: str = opt("", "a run folder to continue (only trainer.* and data= overrides; not "
+                          "trainer.output_dir or trainer.seed)")
     force: bool = opt(False, "resume: evaluate a finished run again (replaces its metrics and report)")
 
 
@@ -74,14 +75,18 @@ def main(argv: list[str]) -> int:
         print(f"config, {cfg.profile} recipe (override with key=value; profile=auto, the default, "
               "runs the gpu recipe on a CUDA device and the cpu recipe elsewhere):")
         print(config.describe_tree(cfg))
+        print(f"\nrun length: {config.describe_run_length(cfg.trainer)}")
         print("\ngpu recipe (profile=gpu): the cpu recipe with")
         print("\n".join(f"  {o}" for o in spec.gpu) or "  (no changes)")
         return 0
     _stop_on_sigterm()
     if args.options.resume:
-        return _resume(args.options.resume, rest, args.options.force)
+        return _resume(args.options.resume, rest, args.options.force, method)
     if not method:
         raise ConfigError("which method? e.g. rs-train method=rainyscape-nerf (rs-train --list shows all)")
+    if args.options.force:
+        raise ConfigError("force=true: only for resume= (a new run never writes over anything: it makes "
+                          "a new folder under trainer.output_dir)")
     from rainyscape import config
 
     cfg = config.method_config(method, rest)  # validates everything before any work
@@ -121,26 +126,38 @@ def _stop_on_sigterm() -> None:
         pass
 
 
-def _resume(run_dir: str, overrides: list[str], force: bool = False) -> int:
+# Trainer keys a resume cannot change: the folder is the run's, and its random state comes
+# back from the checkpoint (a new seed would be recorded and not used).
+FIXED_ON_RESUME = {"trainer.output_dir": "the run stays in its folder", "trainer.seed": "its random state "
+                   "is restored from the checkpoint"}
+
+
+def _resume(run_dir: str, overrides: list[str], force: bool = False, method: str = "") -> int:
     from pathlib import Path
 
     from rainyscape import config
-    from rainyscape.engine.run import read_status
+    from rainyscape.engine.run_folder import RunFolder
     from rainyscape.errors import ConfigError
 
-    path = Path(run_dir).expanduser()
-    if not (path / "config.yml").is_file():
-        raise ConfigError(f"{path}: not a run folder (no config.yml)")
+    folder = RunFolder.check(Path(run_dir).expanduser())
+    path = folder.path
     bad = [o for o in overrides if not o.startswith("trainer.") and not o.startswith("data=")]
     if bad:
         raise ConfigError(f"resume accepts only trainer.* and data= overrides, got '{bad[0]}'")
-    cfg = config.load_yaml(path / "config.yml")
+    fixed = [o for o in overrides if o.split("=", 1)[0] in FIXED_ON_RESUME]
+    if fixed:
+        key = fixed[0].split("=", 1)[0]
+        raise ConfigError(f"{key}: cannot change on resume ({FIXED_ON_RESUME[key]}); start a new run "
+                          f"with method=... instead")
+    cfg = folder.config()
+    if method and method != cfg.method:
+        raise ConfigError(f"method={method}: {path} is a run of {cfg.method}; a resume continues it "
+                          f"(drop method=, or start a new run without resume=)")
     cfg = config.apply_overrides(cfg, config.parse_overrides(overrides))
-    status = read_status(path)
-    if status.get("state") == "finished" and int(status.get("step", 0)) >= cfg.trainer.max_iters:
+    if folder.finished(cfg.trainer.max_iters):
         if not force:
             raise ConfigError(
-                f"{path}: finished (step {status.get('step')} of {cfg.trainer.max_iters}); resuming would "
+                f"{path}: finished (step {folder.status().get('step')} of {cfg.trainer.max_iters}); resuming would "
                 f"only evaluate it again and replace metrics.json and report.html. rs-eval {path} "
                 f"does that; raise trainer.max_iters to train longer, or pass force=true")
         print(f"{path}: finished; evaluating it again (force=true)", file=sys.stderr)

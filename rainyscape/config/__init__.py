@@ -14,11 +14,13 @@ sees only that form. Nothing here imports torch.
 from rainyscape.config.overrides import (apply_overrides, describe_tree, method_config, method_spec,
                                          parse_overrides)
 from rainyscape.config.schema import (ComponentConfig, LossConfig, MethodSpec, PhaseConfig,
-                                      PipelineConfig, TrainerConfig, coerce, materialize)
+                                      PipelineConfig, TrainerConfig, coerce, describe_run_length,
+                                      materialize, run_length, with_run_length)
 from rainyscape.config.yaml_io import from_dict, load_yaml, save_yaml, to_dict
 
 __all__ = [
     "ComponentConfig", "LossConfig", "MethodSpec", "PhaseConfig", "PipelineConfig", "TrainerConfig",
-    "apply_overrides", "coerce", "describe_tree", "from_dict", "load_yaml", "materialize",
-    "method_config", "method_spec", "parse_overrides", "save_yaml", "to_dict",
+    "apply_overrides", "coerce", "describe_run_length", "describe_tree", "from_dict", "load_yaml", "materialize",
+    "method_config", "method_spec", "parse_overrides", "run_length", "save_yaml", "to_dict",
+    "with_run_length",
 ]

@@ -7,8 +7,9 @@ from pathlib import Path
 from typing import Any
 
 from rainyscape import __version__
-from rainyscape.config.schema import (ComponentConfig, LossConfig, PhaseConfig, PipelineConfig,
-                                      TrainerConfig, build_dataclass, is_materialized, materialize)
+from rainyscape.config.schema import (RETIRED_KEYS, ComponentConfig, LossConfig, PhaseConfig,
+                                      PipelineConfig, TrainerConfig, build_dataclass, is_materialized,
+                                      materialize)
 from rainyscape.errors import ConfigError
 from rainyscape.formats.atomic import write_text_atomic
 
@@ -85,11 +86,18 @@ def from_dict(data: dict) -> PipelineConfig:
             rain_head=comp(data.get("rain_head")),
             losses=losses,
             postprocess={k: comp(v) for k, v in (data.get("postprocess") or {}).items()},
-            trainer=build_dataclass(TrainerConfig, data.get("trainer") or {}, "trainer"),
+            trainer=build_dataclass(TrainerConfig, _current(data.get("trainer"), "trainer"), "trainer"),
         )
     except KeyError as exc:
         raise ConfigError(f"config is missing the key {exc}") from None
     return materialize(cfg)
+
+
+def _current(section: dict | None, where: str) -> dict:
+    """A saved section without its retired keys (an older run's config.yml still loads)."""
+    if section is not None and not isinstance(section, dict):
+        raise ConfigError(f"{where}: expected a mapping of options")
+    return {k: v for k, v in (section or {}).items() if f"{where}.{k}" not in RETIRED_KEYS}
 
 
 def save_yaml(cfg: PipelineConfig, path: Path) -> None:

@@ -21,14 +21,14 @@ MIN_IMAGE_SIDE = 4  # smaller images are refused (nothing sensible trains on the
 class CommonParserConfig:
     """Options every dataparser accepts (each parser's Config subclasses this)."""
 
-    holdout_every: int = bounded(8, 0)  # every k-th view is held out for novel-view evaluation (0: none)
+    holdout_every: int = bounded(8, 0, 100_000)  # every k-th view is held out for novel-view evaluation (0: none)
     # or a text file listing the held-out images, one a line: names, stems or paths relative
     # to the scene (as transforms.json writes them); a relative file path is looked up in the
     # working folder, then in the scene folder
     holdout_file: str = ""
-    downscale: int = bounded(1, 1)  # integer image downscale factor (area averaging)
+    downscale: int = bounded(1, 1, 1024)  # integer image downscale factor (area averaging)
     normalize: bool = True  # centre where the cameras look; farthest camera at camera_radius
-    camera_radius: float = bounded(3.0, above=0.0)
+    camera_radius: float = bounded(3.0, hi=1e6, above=0.0)
 
 
 class ImageIndex:
@@ -116,7 +116,7 @@ def assemble_scene(config: CommonParserConfig, *, name: str, source: Path, image
                    cameras: Cameras, image_names: list[str], clean_images: Tensor | None = None,
                    depths: Tensor | None = None, rain_layers: Tensor | None = None,
                    points: Tensor | None = None, point_colors: Tensor | None = None,
-                   near: float | None = None, far: float | None = None,
+                   points_source: str = "", near: float | None = None, far: float | None = None,
                    forward_facing: bool = False, metadata: dict | None = None,
                    image_files: list[Path] | None = None,
                    heldout: tuple[list[str], str] | None = None) -> SceneData:
@@ -124,6 +124,7 @@ def assemble_scene(config: CommonParserConfig, *, name: str, source: Path, image
 
     ``cameras`` must already be in the OpenCV convention. ``depths`` are z-depths in the
     input's world units; ``near`` / ``far`` likewise (estimated from cameras when None).
+    ``points_source``: where ``points`` come from (SceneData.points_source).
     ``image_files``: the image files (held-out lists may name them by path). ``heldout``:
     the format's own held-out list (entries, where they come from), used unless
     ``holdout_file`` is set.
@@ -194,5 +195,6 @@ def assemble_scene(config: CommonParserConfig, *, name: str, source: Path, image
         train_indices=train, eval_indices=held, near=float(near), far=float(far),
         scene_box=box.float(), clean_images=clean_images, depths=depths,
         rain_layers=rain_layers, points=points, point_colors=point_colors,
+        points_source=(points_source or "dataparser") if points is not None and len(points) else "none",
         forward_facing=forward_facing, transform=transform, scale=scale, source=str(source),
         metadata=metadata or {})

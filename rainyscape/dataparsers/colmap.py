@@ -4,6 +4,11 @@ Reads what rs-process-data writes (images/ + sparse/0/, already pinhole) and ord
 projects. Distorted cameras are undistorted on load with pycolmap; when undistortion (or one
 camera per image) leaves images of different sizes, all are centre-cropped to the common size.
 Sparse points and their colours go to SceneData for 3DGS initialisation.
+
+Clean images (evaluation only): ``clean=FOLDER`` holds one per image of the model, named like
+it (or its stem with another suffix); ``auto`` takes the ``_rain`` -> ``_wo_rain`` sibling of
+the image folder when there is one. They are undistorted and cropped exactly as the rainy
+images are.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ import torch
 from rainyscape.cameras import Cameras
 from rainyscape.components import DataParser
 from rainyscape.dataparsers.base import CommonParserConfig, assemble_scene
-from rainyscape.dataparsers.images import read_rgb
+from rainyscape.dataparsers.images import clean_image_paths, read_rgb
 from rainyscape.errors import DataError
 from rainyscape.dataparsers.colmap_model import colmap_c2w, find_model, model_points, posed_images
 from rainyscape.scene import SceneData
@@ -75,6 +80,7 @@ class ColmapParser(DataParser):
     @dataclass
     class Config(CommonParserConfig):
         images: str = "images"  # image folder, relative to the scene folder
+        clean: str = "auto"  # clean images (evaluation only); auto: the `_rain` -> `_wo_rain` sibling; "": none
         sparse: str = ""  # model folder relative to the scene; empty: found automatically
         load_points: bool = True  # hand the sparse points to the field (3DGS initialisation)
 
@@ -91,26 +97,36 @@ class ColmapParser(DataParser):
         image_dir = root / cfg.images
         if not image_dir.is_dir():
             raise DataError(f"{image_dir}: no image folder (set dataparser.images=FOLDER)")
-        images, fx, fy, cx, cy = [], [], [], [], []
+        files = [image_dir / view.name for view in views]
+        clean_files = clean_image_paths(cfg.clean, root, image_dir, files)
+        images, cleans, fx, fy, cx, cy = [], [], [], [], [], []
         undistorted = False
-        for view in views:
-            file = image_dir / view.name
+        for k, (view, file) in enumerate(zip(views, files)):
             if not file.is_file():
                 raise DataError(f"{file}: image '{view.name}' of the COLMAP model is missing")
             rgb = read_rgb(file)  # as stored, no EXIF turn: the pixels COLMAP measured
+            clean = read_rgb(clean_files[k]) if clean_files is not None else None
             camera = model.cameras[view.camera_id]
             if (rgb.shape[1], rgb.shape[0]) != (camera.width, camera.height):
                 raise DataError(f"{file}: image is {rgb.shape[1]}x{rgb.shape[0]} but its COLMAP "
                                 f"camera {view.camera_id} is {camera.width}x{camera.height}")
+            if clean is not None and clean.shape != rgb.shape:
+                raise DataError(f"{clean_files[k]}: clean image is {clean.shape[1]}x{clean.shape[0]}, "
+                                f"the rainy one {rgb.shape[1]}x{rgb.shape[0]} (clean=)")
             if not camera.is_undistorted():
+                if clean is not None:  # the same camera: the same undistortion
+                    clean, _ = undistort_view(clean, camera)
                 rgb, camera = undistort_view(rgb, camera)
                 undistorted = True
             images.append(rgb)
+            cleans.append(clean)
             fx.append(camera.focal_length_x)
             fy.append(camera.focal_length_y)
             cx.append(camera.principal_point_x)
             cy.append(camera.principal_point_y)
-        stack, cx, cy = crop_to_common_size(images, np.array(cx), np.array(cy))
+        stack, cx_crop, cy_crop = crop_to_common_size(images, np.array(cx), np.array(cy))
+        clean_stack = crop_to_common_size(cleans, np.array(cx), np.array(cy))[0] if clean_files else None
+        cx, cy = cx_crop, cy_crop
         c2w = torch.from_numpy(np.stack([colmap_c2w(v) for v in views])).float()
         cameras = Cameras(c2w, _f32(fx), _f32(fy), _f32(cx), _f32(cy),
                           width=stack.shape[2], height=stack.shape[1])
@@ -128,5 +144,6 @@ class ColmapParser(DataParser):
         return assemble_scene(cfg, name=root.resolve().name, source=root,
                               images=torch.from_numpy(stack), cameras=cameras,
                               image_names=[v.name for v in views], points=points,
-                              point_colors=colors, near=near, far=far, metadata=metadata,
-                              image_files=[image_dir / v.name for v in views])
+                              clean_images=None if clean_stack is None else torch.from_numpy(clean_stack),
+                              point_colors=colors, points_source="colmap model", near=near, far=far,
+                              metadata=metadata, image_files=files)

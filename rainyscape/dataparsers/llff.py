@@ -25,6 +25,7 @@ import torch
 
 from rainyscape.cameras import Cameras
 from rainyscape.components import DataParser
+from rainyscape.config.schema import choice
 from rainyscape.dataparsers.base import CommonParserConfig, assemble_scene
 from rainyscape.dataparsers.images import clean_image_paths, list_images, read_stack
 from rainyscape.errors import DataError
@@ -37,7 +38,7 @@ POSE_CONVENTIONS = ("auto", "llff", "opencv")
 class LLFFConfig(CommonParserConfig):
     images: str = "auto"  # image folder; auto: images/, else images_rain/
     clean: str = "auto"  # auto: the `_rain` -> `_wo_rain` sibling if it exists; "": none
-    pose_convention: str = "auto"  # auto, llff (down, right, back) or opencv (right, down, forward)
+    pose_convention: str = choice("auto", POSE_CONVENTIONS)  # auto, llff (down, right, back) or opencv (right, down, forward)
     use_prescaled: bool = True  # with downscale=N read images_N/ (or images_k/, k dividing N) when it exists (LLFF habit)
 
 

@@ -11,7 +11,6 @@ image in natural order.
 from __future__ import annotations
 
 import csv
-import json
 import math
 import re
 from dataclasses import dataclass
@@ -24,10 +23,14 @@ from rainyscape.components import DataParser
 from rainyscape.config.schema import bounded
 from rainyscape.dataparsers.base import CommonParserConfig, assemble_scene
 from rainyscape.dataparsers.depth import depth_bounds, points_from_depth, read_depth_mat
-from rainyscape.dataparsers.images import clean_image_paths, list_images, read_rgba, read_stack
+from rainyscape.dataparsers.images import clean_image_paths, list_images, read_stack
+from rainyscape.dataparsers.truth import read_rain_layers, simulated_rain
 from rainyscape.dataparsers.maya_math import MAYA_CSV_COLUMNS, maya_cameras
 from rainyscape.errors import DataError
 from rainyscape.scene import SceneData
+
+
+GT_DEPTH_SOURCE = "ground-truth depth (dataparser.points_from_depth=true, not a real capture's)"
 
 
 @dataclass
@@ -38,8 +41,11 @@ class MayaCsvConfig(CommonParserConfig):
     depth: str = "depth"  # folder of <stem>.mat depth maps ("" or missing: none)
     depth_key: str = "depth"
     rain: str = "rain"  # folder of <stem>.png RGBA rain layers ("" or missing: none)
-    points_from_depth: bool = True  # sparse points for 3DGS: back-projected depth samples
-    max_points: int = bounded(20000, 0)
+    # Sparse points for 3DGS back-projected from the GROUND-TRUTH depth maps: information no
+    # capture has, so off by default (3DGS then starts from points triangulated from the rainy
+    # training views) and refused by rs-bench. For studies of initialisation only.
+    points_from_depth: bool = False
+    max_points: int = bounded(20000, 0, 10_000_000)  # points_from_depth: at most this many
     check_units: bool = True  # reject radians / inches that would silently give wrong cameras
 
 
@@ -129,16 +135,6 @@ def _check_values(path: Path, t: MayaCamerasTable, check_units: bool) -> None:
                         "Rotation columns must be in degrees, or pass check_units=false")
 
 
-def simulated_rain(root: Path) -> dict:
-    """What the simulator's ``scene.json`` says of the true rain that evaluation needs: the
-    number of directions it falls in (``mix`` > 0: two); {} for a folder rs-synth did not write."""
-    try:
-        rain = json.loads((root / "scene.json").read_text())["rain"]
-        return {"rain_directions": 2 if float(rain.get("mix", 0.0)) > 0 else 1}
-    except (OSError, ValueError, KeyError, TypeError):
-        return {}
-
-
 def _match_images(csv_path: Path, folder: Path, names: list[str]) -> list[Path]:
     """Images for cameraShape1..N: by integer stem when every stem is an integer, else in order."""
     files = list_images(folder)
@@ -201,7 +197,8 @@ class MayaCsvParser(DataParser):
         return assemble_scene(
             cfg, name=root.resolve().name, source=root, images=images, cameras=cameras,
             image_names=[p.name for p in files], clean_images=clean, depths=depths, rain_layers=rain,
-            points=points, point_colors=colors, near=near, far=far, image_files=files,
+            points=points, point_colors=colors, points_source=GT_DEPTH_SOURCE, near=near, far=far,
+            image_files=files,
             metadata={"format": "maya-csv", "world": "Maya, Y up", "cameras_csv": str(csv_path),
                       **simulated_rain(root)})
 
@@ -233,17 +230,4 @@ class MayaCsvParser(DataParser):
         folder = _sibling(root, self.config.rain)
         if folder is None or clean is None:
             return None  # the additive rain I - B needs the clean image B
-        layers = []
-        for i, f in enumerate(files):
-            p = folder / f"{f.stem}.png"
-            if not p.is_file():
-                raise DataError(f"{p}: rain layer missing")
-            rgba = read_rgba(p)
-            if rgba.shape[1::-1] != size:
-                raise DataError(f"{p}: rain layer is {rgba.shape[1]}x{rgba.shape[0]}, the images are "
-                                f"{size[0]}x{size[1]}")
-            a = rgba[..., 3:].astype(np.float32) / 255.0
-            c = rgba[..., :3].astype(np.float32) / 255.0
-            b = clean[i].numpy().astype(np.float32) / 255.0
-            layers.append(a * (c - b))  # I - B for I = B (1 - A) + C A
-        return torch.from_numpy(np.stack(layers))
+        return read_rain_layers(folder, files, size, clean)

@@ -34,6 +34,7 @@ from rainyscape.cameras import Cameras, opencv_to_opengl, opengl_to_opencv
 from rainyscape.components import DataParser
 from rainyscape.dataparsers.base import CommonParserConfig, ImageIndex, assemble_scene
 from rainyscape.dataparsers.images import IMAGE_SUFFIXES, clean_image_paths, read_rgb
+from rainyscape.dataparsers.truth import read_rain_layers, simulated_rain
 from rainyscape.errors import DataError
 from rainyscape.scene import SceneData
 
@@ -92,6 +93,8 @@ def write_transforms(path: str | Path, content: dict) -> Path:
 class TransformsJsonConfig(CommonParserConfig):
     transforms: str = "transforms.json"  # file name inside the scene folder
     clean: str = "auto"  # folder of clean images matched by file name; auto: `_rain` -> `_wo_rain`
+    images: str = ""  # read every frame's image by its file name from this folder instead ("": the frames' paths)
+    rain: str = "auto"  # true rain layers (rs-synth's RGBA), by stem, for evaluation; auto: rain/ if present; "": none
 
 
 @dataclass
@@ -255,12 +258,18 @@ class TransformsJsonParser(DataParser):
         frames = meta.get("frames") if isinstance(meta, dict) else None
         if not frames or not isinstance(frames, list):
             raise DataError(f"{json_path}: no 'frames' list")
-        images, cams, files = [], [], []
+        images, cams, files, listed = [], [], [], []
+        seen: dict[Path, int] = {}
         for i, frame in enumerate(frames):
             where = f"{json_path}, frame {i}"
             if not isinstance(frame, dict) or "file_path" not in frame:
                 raise DataError(f"{where}: no file_path")
-            file = resolve_image(root, str(frame["file_path"]))
+            listed.append(resolve_image(root, str(frame["file_path"])))
+            if listed[-1] in seen:  # one photo, two poses: the views would contradict each other
+                raise DataError(f"{json_path}: frames {seen[listed[-1]]} and {i} both use the image "
+                                f"{frame['file_path']}; each frame needs its own image")
+            seen[listed[-1]] = i
+            file = self._moved(root / cfg.images, listed[-1]) if cfg.images else listed[-1]
             img = read_rgb(file)
             cam = frame_camera(meta, frame, where, (img.shape[1], img.shape[0]))
             if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
@@ -280,11 +289,31 @@ class TransformsJsonParser(DataParser):
         cameras = Cameras(c2w, *(torch.tensor([getattr(c, k) for c in cams], dtype=torch.float32)
                                  for k in ("fx", "fy", "cx", "cy")), w, h)
         clean = self._clean(root, files, cams)
+        rain = self._rain(root, files, (w, h), clean)
         return assemble_scene(
             cfg, name=root.resolve().name, source=root, images=torch.from_numpy(np.stack(images)),
-            cameras=cameras, image_names=names, clean_images=clean, image_files=files,
-            heldout=self._split(meta, json_path, names, files, root),
-            metadata={"format": "transforms-json", "transforms": str(json_path)})
+            cameras=cameras, image_names=names, clean_images=clean, rain_layers=rain, image_files=listed,
+            heldout=self._split(meta, json_path, names, listed, root),  # lists name the frames by their paths
+            metadata={"format": "transforms-json", "transforms": str(json_path), **simulated_rain(root)})
+
+    @staticmethod
+    def _moved(folder: Path, file: Path) -> Path:
+        """The frame's image of the same file name in ``folder`` (dataparser.images=)."""
+        if not folder.is_dir():
+            raise DataError(f"{folder}: image folder not found (images=)")
+        moved = folder / file.name
+        if not moved.is_file():
+            raise DataError(f"{moved}: no image named like the frame's {file.name} (images=)")
+        return moved
+
+    def _rain(self, root: Path, files: list[Path], size: tuple[int, int], clean):
+        option = self.config.rain
+        folder = root / ("rain" if option == "auto" else option) if option else None
+        if folder is None or clean is None or (option == "auto" and not folder.is_dir()):
+            return None  # the additive rain I - B needs the clean image B
+        if not folder.is_dir():
+            raise DataError(f"{folder}: rain layer folder not found (rain=)")
+        return read_rain_layers(folder, files, size, clean)
 
     @staticmethod
     def _split(meta: dict, json_path: Path, names: list[str], files: list[Path],

@@ -1,7 +1,8 @@
-"""The exclusive lock of a run folder: one process trains in it at a time.
+"""An exclusive lock on a folder: one process works in it at a time.
 
-``RUN_DIR/run.lock`` is locked with ``fcntl.flock`` for as long as a training process works in
-the folder (training, then its evaluation). The kernel releases the lock when the process
+A run folder's lock file (``RunFolder.lock``) is locked with ``fcntl.flock`` for as long as a
+training process works in the folder (training, then its evaluation); rs-bench locks one
+benchmark of its results folder the same way. The kernel releases the lock when the process
 ends, however it ends (kill -9 included), so a lock is never stale. The holder writes its
 pid, host, command and start time into the file; a second process that finds the folder
 locked reads them for its error message.
@@ -25,13 +26,12 @@ try:
 except ImportError:  # pragma: no cover - not on Linux / macOS
     fcntl = None
 
-LOCK_NAME = "run.lock"
 
 
-def holder_info(run_dir: Path) -> dict:
-    """What the lock file says about its holder (empty when unreadable)."""
+def holder_info(path: Path) -> dict:
+    """What the lock file ``path`` says about its holder (empty when unreadable)."""
     try:
-        data = json.loads((Path(run_dir) / LOCK_NAME).read_text() or "{}")
+        data = json.loads(Path(path).read_text() or "{}")
     except (OSError, ValueError):
         return {}
     return data if isinstance(data, dict) else {}
@@ -49,11 +49,14 @@ def describe_holder(info: dict) -> str:
 
 
 class RunLock:
-    """``with RunLock(run_dir, "rs-train"):`` holds the folder's lock (RunBusyError if taken)."""
+    """``with RunLock(folder, "rs-train", name):`` holds the lock file ``folder/name``
+    (RunBusyError if taken). ``label``: what the refusal names (default: the folder)."""
 
-    def __init__(self, run_dir: Path, command: str = ""):
-        self.run_dir = Path(run_dir)
-        self.path = self.run_dir / LOCK_NAME
+    def __init__(self, folder: Path, command: str, name: str, label: str = ""):
+        self.folder = Path(folder)
+        self.name = name
+        self.path = self.folder / name
+        self.label = label or str(self.folder)
         self.command = command or Path(sys.argv[0]).name or "python"
         self.fd: int | None = None
 
@@ -63,15 +66,15 @@ class RunLock:
         try:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
-            raise RainyScapeError(f"{self.run_dir}: cannot open the run's lock file "
-                                  f"({exc.strerror or exc})") from None
+            raise RainyScapeError(f"{self.path}: cannot open the lock file "
+                                  f"({(exc.strerror or str(exc)).lower()})") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             os.close(fd)
-            info = holder_info(self.run_dir)
+            info = holder_info(self.path)
             raise RunBusyError(
-                f"{self.run_dir}: in use by {describe_holder(info)}; wait until it ends"
+                f"{self.label}: in use by {describe_holder(info)}; wait until it ends"
                 + (f" or stop it (kill {info['pid']})" if info.get("pid") and
                    info.get("host", socket.gethostname()) == socket.gethostname() else "")) from None
         info = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
@@ -98,9 +101,9 @@ class RunLock:
         self.release()
 
 
-def is_locked(run_dir: Path) -> bool:
-    """Whether some process (this one included) holds the folder's lock."""
-    path = Path(run_dir) / LOCK_NAME
+def is_locked(path: Path) -> bool:
+    """Whether some process (this one included) holds the lock file ``path``."""
+    path = Path(path)
     if fcntl is None or not path.is_file():
         return False
     try:

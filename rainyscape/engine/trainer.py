@@ -7,7 +7,6 @@ interfaces (:mod:`rainyscape.components`); what acts in a phase is the method's 
 
 from __future__ import annotations
 
-import json
 import random
 import sys
 import time
@@ -24,14 +23,14 @@ from rainyscape.components import (Energy, LatentModel, LossContext, ParamGroup,
                                    TrainState)
 from rainyscape.config import PhaseConfig
 from rainyscape.engine import snapshot
-from rainyscape.engine.checkpoint import (checkpoint_path, latest_checkpoint, load_checkpoint,
-                                          load_newest_valid, save_checkpoint)
+from rainyscape.engine.checkpoint import checkpoint_path, load_checkpoint
+from rainyscape.engine.loss_sum import compute_losses
 from rainyscape.engine.phases import PhaseSchedule
-from rainyscape.engine.pipeline import Pipeline, compute_losses
+from rainyscape.engine.pipeline import Pipeline
 from rainyscape.engine.progress import ProgressBar
+from rainyscape.engine.run_folder import RunFolder, fitting_the_run
 from rainyscape.engine.sampling import MAX_WHOLE_IMAGE_PIXELS, batch_count, gather_pixels, sample_windows
-from rainyscape.errors import DataError, RainyScapeError
-from rainyscape.formats.atomic import write_text_atomic
+from rainyscape.errors import DataError
 from rainyscape.imaging.metrics import psnr
 
 
@@ -54,10 +53,11 @@ class Trainer:
     """Trains a pipeline in a run folder. ``evaluate`` (optional) is called every
     ``trainer.eval_every`` steps and its numbers go to the log and the progress line."""
 
-    def __init__(self, pipeline: Pipeline, run_dir: Path, evaluate: Callable[[], dict] | None = None):
-        self.p = pipeline
+    def __init__(self, pipeline: Pipeline, run_dir: RunFolder | Path, evaluate: Callable[[], dict] | None = None):
+        self.pipeline = pipeline
         self.cfg = pipeline.config.trainer
-        self.run_dir = Path(run_dir)
+        self.folder = run_dir if isinstance(run_dir, RunFolder) else RunFolder(run_dir)
+        self.run_dir = self.folder.path
         self.device = pipeline.device
         self.scene = pipeline.scene
         self.images = self.scene.images.to(self.device)
@@ -71,8 +71,7 @@ class Trainer:
         self.step = 0
         self.groups = self._param_groups()
         self.optimizers = self._make_optimizers()
-        self.callbacks = list(self.p.field.callbacks())
-        self.log_path = self.run_dir / "log.jsonl"
+        self.callbacks = list(self.pipeline.field.callbacks())
         self.batch_sizes = {name: batch_count(p.patches, p.patch_size, self.scene.width, self.scene.height)
                             for name, p in pipeline.config.phases.items()}
         self.last_save = time.monotonic()
@@ -81,7 +80,7 @@ class Trainer:
 
     def _param_groups(self) -> dict[str, list[ParamGroup]]:
         """Each model's parameter groups, by pipeline key."""
-        return {key: list(model.param_groups()) for key, model in self.p.models().items()}
+        return {key: list(model.param_groups()) for key, model in self.pipeline.models().items()}
 
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         groups = [g for gs in self.groups.values() for g in gs]
@@ -119,19 +118,21 @@ class Trainer:
         for cb in self.callbacks:
             cb.before_step(state)
         view_ids, window, target = self._batch(name, phase)
-        self.p.field.train()
-        out = self.p.field.render(self.cameras[view_ids], window)
-        heads = [self.p.heads[key] for key in phase.heads]
+        self.pipeline.field.train()
+        out = self.pipeline.field.render(self.cameras[view_ids], window)
+        heads = [self.pipeline.heads[key] for key in phase.heads]
         layers: dict[str, Tensor] = {}
         for head in heads:
             head.train()
             layers[head.layer] = head(view_ids.to(self.device), window)
         ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window)
-        terms = self.p.loss_terms(name)
+        terms = self.pipeline.loss_terms(name)
         total, values = compute_losses(terms, ctx)
+        # what the terms measured on this batch (the latent updates below evaluate them again)
+        measured = {f"{key}.{mk}": mv for key, (_, term) in terms.items() for mk, mv in term.metrics.items()}
         # the field's own losses fit what the layers leave of the input
         field_target = target if not layers else (target - sum(layers.values())).detach()
-        for key, value in self.p.field.extra_losses(out, field_target).items():
+        for key, value in self.pipeline.field.extra_losses(out, field_target).items():
             total = total + value
             values[f"field.{key}"] = float(value.detach())
         for opt in self.optimizers.values():
@@ -151,15 +152,14 @@ class Trainer:
         fit = out.rgb.detach() + sum(v.detach() for v in layers.values())
         record = {"step": self.step, "phase": name, "loss": float(total.detach()), "terms": values,
                   "psnr_input": float(psnr(fit.clamp(0, 1), target))}
-        for key, (_, term) in terms.items():
-            for mk, mv in term.metrics.items():
-                record.setdefault("metrics", {})[f"{key}.{mk}"] = mv
+        if measured:
+            record["metrics"] = measured
         return record
 
     def _energy(self, ctx: LossContext, window: Window, layer: str, terms) -> Energy:
         """The phase's loss as a function of one layer's prediction on a sub-window, with the
         render (detached) and the other layers held at this step's values."""
-        base = replace(ctx, rendered=ctx.rendered.detach())
+        base = replace(ctx, rendered=ctx.rendered.detach(), record=False)
 
         def energy(sub: Window, prediction: Tensor) -> Tensor:
             c = base
@@ -176,65 +176,44 @@ class Trainer:
     # ------------------------------------------------------------- checkpoints
 
     def _parts(self) -> snapshot.TrainingParts:
-        return snapshot.TrainingParts(self.p.models(), self.optimizers,
-                                      {k: t for k, (_, t) in self.p.losses.items()},
+        return snapshot.TrainingParts(self.pipeline.models(), self.optimizers,
+                                      {k: t for k, (_, t) in self.pipeline.losses.items()},
                                       self.callbacks, self.generator)
 
     def save(self) -> Path:
         self.last_save = time.monotonic()
-        return save_checkpoint(self.run_dir / "checkpoints", self.step,
-                               snapshot.capture(self.step, self._parts()), self.cfg.keep_checkpoints)
+        return self.folder.save_checkpoint(self.step, snapshot.capture(self.step, self._parts()),
+                                           self.cfg.keep_checkpoints)
 
     def load(self, path: Path | None = None) -> Path:
         """Restore the training state from ``path``, or from the newest checkpoint that reads
         (an unreadable newer one is set aside as ``*.corrupt`` with a warning). Returns the
         checkpoint used."""
         if path is None:
-            found = load_newest_valid(self.run_dir / "checkpoints", self.device, set_aside=True)
-            if found is None:
-                raise DataError(f"{self.run_dir}: no checkpoint to resume from")
-            path, state = found
+            path, state = self.folder.checkpoint_to_restore(self.device, set_aside=True)
         else:
             state = load_checkpoint(path, self.device)
-        try:
-            snapshot.restore_models(state, self.p.models())
+        with fitting_the_run(path):
+            snapshot.restore_models(state, self.pipeline.models())
             # Fields may change their parameter set (densification): rebuild optimisers, then load.
             self.groups = self._param_groups()
             self.optimizers = self._make_optimizers()
             snapshot.restore_rest(state, self._parts())
-        except (KeyError, IndexError, TypeError, ValueError, RuntimeError) as exc:
-            reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise RainyScapeError(f"{path}: does not fit this run's config ({type(exc).__name__}: "
-                                  f"{reason[:300]})") from None
         self.step = int(state["step"])
         return path
 
     # -------------------------------------------------------------------- loop
 
     def _log(self, record: dict) -> None:
-        with open(self.log_path, "a") as fh:
-            fh.write(json.dumps(record) + "\n")
+        self.folder.append_log(record)
 
     def cut_log(self) -> None:
         """Drop log records past the current step (a killed run logged steps its last
         checkpoint does not hold; they are trained again) and any torn last line."""
-        if not self.log_path.is_file():
-            return
-        kept, changed = [], False
-        for line in self.log_path.read_text().splitlines():
-            try:
-                record = json.loads(line)
-                keep = int(record.get("step", 0)) <= self.step
-            except (ValueError, TypeError, AttributeError):
-                keep = False
-            if keep:
-                kept.append(line)
-            changed |= not keep
-        if changed:
-            write_text_atomic(self.log_path, "".join(f"{line}\n" for line in kept))
+        self.folder.cut_log(self.step)
 
     def _announce_batches(self) -> None:
-        for name, phase in self.p.config.phases.items():
+        for name, phase in self.pipeline.config.phases.items():
             if self.batch_sizes[name] < phase.patches and self.phases.length(name):
                 w, h = self.scene.width, self.scene.height
                 print(f"phases.{name}: windows of whole {w}x{h} images; {phase.patches} of them a step "
@@ -265,7 +244,7 @@ class Trainer:
                 record = self.train_step()
                 record["time"] = round(time.time() - t0, 3)
                 if self.step % self.cfg.log_every == 0 or self.step == stop:
-                    record["stats"] = {f"field.{k}": v for k, v in self.p.field.stats().items()}
+                    record["stats"] = {f"field.{k}": v for k, v in self.pipeline.field.stats().items()}
                     self._log(record)
                 if (self.evaluate is not None and self.cfg.eval_every
                         and (self.step % self.cfg.eval_every == 0 or self.step == stop)):
@@ -282,7 +261,7 @@ class Trainer:
                   f"rs-train resume={self.run_dir}", file=sys.stderr)
             raise
         progress.close()
-        if latest_checkpoint(self.run_dir / "checkpoints") != checkpoint_path(self.run_dir / "checkpoints", self.step):
+        if self.folder.newest_checkpoint() != checkpoint_path(self.folder.checkpoints, self.step):
             self.save()
         if self.step >= self.cfg.max_iters:
             for cb in self.callbacks:

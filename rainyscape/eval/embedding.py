@@ -20,6 +20,7 @@ from torch import Tensor
 from rainyscape.cameras import Window
 from rainyscape.components import HasEmbeddings
 from rainyscape.engine.pipeline import Pipeline
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.errors import ConfigError
 from rainyscape.eval.images import grid, save_png, to_uint8
 from rainyscape.eval.rain_stats import streak_angle_deg
@@ -87,7 +88,7 @@ def embedding_study(pipeline: Pipeline, views: list[int] | None = None, patch: i
 def write_embedding_study(pipeline: Pipeline, run_dir: Path, **kwargs) -> Path:
     """``renders/embedding_study.png`` (the grid) and ``.json`` (its statistics)."""
     rows, stats = embedding_study(pipeline, **kwargs)
-    out = Path(run_dir) / "renders" / "embedding_study.png"
+    out = RunFolder(run_dir).renders / "embedding_study.png"
     save_png(out, grid(rows))
     out.with_suffix(".json").write_text(json.dumps(stats, indent=2))
     return out

@@ -1,70 +1,56 @@
-"""The evaluation protocol (DESIGN.md): rainy-input floor, de-raining on training views
-(with and without post-processing) and novel held-out views; PSNR, SSIM, LPIPS (when its
-weights are on this machine), the predicted rain angle and, for simulated scenes, how well
-the predicted rain layer correlates with the true one.
-
-``metrics.json`` keys (``summary``; every value a mean over views):
-  rainy_input_{psnr,ssim,lpips}   rainy training inputs vs clean: the floor to beat
-  train_{psnr,ssim,lpips}         renders at training views vs clean (the paper's numbers)
-  train_<pp>_{psnr,ssim,lpips}    the same after post-process <pp> (the config's key)
-  train_<pp>_coverage             fusion post-processes: fraction of pixels its mask takes from the render
-  train_<pp>_random_{psnr,ssim,lpips}  the fusion control: the same fusion with a mask of random
-                                  pixels of the same coverage (seeded per view); a fused gain
-                                  that the control also shows comes from copying the input
-  heldout_{psnr,ssim,lpips}       renders at held-out views vs clean (novel views)
-  {train,heldout}_psnr_vs_rainy   renders vs the rainy images (how much rain was fitted)
-  {train,heldout}_psnr_{in_rain,dry}, train_<pp>_psnr_{in_rain,dry}, rainy_input_psnr_in_rain
-                                  simulated scenes: PSNR vs clean on the pixels the true rain
-                                  covers (any channel above RAIN_PIXEL) and on the others: is
-                                  what a method loses rain left in, or the rest of the scene?
-  rain_angle_deg, rain_angle_true_deg, rain_angle_error_deg, rain_correlation
+"""The evaluation protocol (docs/evaluation.md): rainy-input floor, de-raining on training
+views (with and without post-processing) and novel held-out views; PSNR, SSIM, LPIPS (when its
+weights are on this machine), the predicted rain angle and, for simulated scenes, how well the
+predicted rain layer correlates with the true one. Every number is written under the key its
+:class:`~rainyscape.eval.metric_keys.Metric` gives (the list: rainyscape/eval/metric_keys.py).
 """
 
 from __future__ import annotations
 
-import json
 import sys
-import time
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from rainyscape.components import MaskFusion
 from rainyscape.engine.pipeline import Pipeline
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.eval.images import save_strip
+from rainyscape.eval.metric_keys import (COVERAGE, LPIPS, PSNR, PSNR_DRY, PSNR_IN_RAIN, PSNR_VS_RAINY, RAIN_KEPT,
+                                         RAIN_RECOVERED, SSIM, Measure, Metric, control, post, rainy_input,
+                                         render)
 from rainyscape.eval.perceptual import LpipsMetric, load_lpips
 from rainyscape.eval.rain_stats import angle_options, true_rain_directions, view_rain_stats
 from rainyscape.eval.report import write_report
 from rainyscape.eval.summary import summarize
 from rainyscape.eval.views import ViewImages, progress, view_images
-from rainyscape.formats.atomic import write_text_atomic
 from rainyscape.imaging.metrics import masked_psnr, psnr, ssim
-from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion, fuse, rain_mask
 
 STRIP_VIEWS = 3  # training views whose comparison strips evaluation saves for the report
 CONTROL_SEED = 7919  # the random-mask control of view i uses seed CONTROL_SEED + i
 RAIN_PIXEL = 0.02  # a pixel is "in rain" where the true rain layer exceeds this (about 5 / 255)
 
 
-def image_metrics(pred: Tensor, target: Tensor, lpips: LpipsMetric) -> dict[str, float]:
+def image_metrics(pred: Tensor, target: Tensor, lpips: LpipsMetric) -> dict[Measure, float]:
     """PSNR, SSIM (and LPIPS when available) of two (3, H, W) images."""
-    out = {"psnr": float(psnr(pred, target)), "ssim": float(ssim(pred[None], target[None]))}
+    out = {PSNR: float(psnr(pred, target)), SSIM: float(ssim(pred[None], target[None]))}
     if lpips.available:
-        out["lpips"] = float(lpips.fn(pred[None], target[None])[0])
+        out[LPIPS] = float(lpips.fn(pred[None], target[None])[0])
     return out
 
 
-def region_psnr(pred: Tensor, clean: Tensor, wet: Tensor) -> dict[str, float | None]:
+def region_psnr(pred: Tensor, clean: Tensor, wet: Tensor) -> dict[Measure, float | None]:
     """PSNR of a (3, H, W) image vs clean on the pixels in rain (``wet``, (H, W)) and the others."""
-    return {"psnr_in_rain": masked_psnr(pred, clean, wet), "psnr_dry": masked_psnr(pred, clean, ~wet)}
+    return {PSNR_IN_RAIN: masked_psnr(pred, clean, wet), PSNR_DRY: masked_psnr(pred, clean, ~wet)}
 
 
 def rain_shares(rendered: Tensor, clean: Tensor, true_rain: Tensor, wet: Tensor,
-                rain: Tensor | None = None) -> dict[str, float | None]:
+                rain: Tensor | None = None) -> dict[Measure, float | None]:
     """Where a view's true rain went, on the pixels it covers (``wet``, (H, W)), as shares of
-    its amount there (sum over wet pixels and channels): ``rain_kept`` is how much of it the
+    its amount there (sum over wet pixels and channels): ``RAIN_KEPT`` is how much of it the
     render still shows (sum (B - clean) / sum rain: 1 = the rainy input, 0 = clean, below 0 =
-    darker than clean), ``rain_recovered`` how much of it the predicted rain holds (sum R /
+    darker than clean), ``RAIN_RECOVERED`` how much of it the predicted rain holds (sum R /
     sum rain; only with ``rain``). None where the view has no rain."""
     m = wet.expand_as(true_rain)
     total = float(true_rain[m].double().sum())
@@ -72,55 +58,34 @@ def rain_shares(rendered: Tensor, clean: Tensor, true_rain: Tensor, wet: Tensor,
     def share(layer: Tensor) -> float | None:
         return float(layer[m].double().sum()) / total if total > 0 else None
 
-    out = {"rain_kept": share(rendered - clean)}
+    out = {RAIN_KEPT: share(rendered - clean)}
     if rain is not None:
-        out["rain_recovered"] = share(rain)
+        out[RAIN_RECOVERED] = share(rain)
     return out
 
 
 def region_metrics(image: Tensor, clean: Tensor, true_rain: Tensor, wet: Tensor,
-                   rain: Tensor | None = None) -> dict[str, float | None]:
+                   rain: Tensor | None = None) -> dict[Measure, float | None]:
     """:func:`region_psnr` and :func:`rain_shares` of one image."""
     return {**region_psnr(image, clean, wet), **rain_shares(image, clean, true_rain, wet, rain)}
 
 
-def fusion_mask(post, rendered: Tensor, rain: Tensor, rainy: Tensor) -> Tensor | None:
-    """The (1, H, W) boolean mask under which fusion post-process ``post`` keeps rendered
-    pixels: its own ``post.mask(rendered, rain, rainy)`` when it has one, for rain-mask fusion
-    the mask rebuilt from its public pieces (``rain_mask`` with its threshold and dilation);
-    None for a post-process that is not a mask fusion (it gets no control)."""
-    if callable(getattr(post, "mask", None)):
-        return post.mask(rendered, rain, rainy)
-    if isinstance(post, RainMaskFusion):
-        return rain_mask(rain, post.config.threshold, post.config.dilation)
-    return None
-
-
-def random_mask_like(mask: Tensor, seed: int) -> Tensor:
-    """A boolean mask of ``mask``'s shape with exactly as many pixels set, placed uniformly at
-    random (``torch.randperm`` with ``seed``: the same seed gives the same mask anywhere)."""
-    n, k = mask.numel(), int(mask.sum())
-    flat = torch.zeros(n, dtype=torch.bool)
-    flat[torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:k]] = True
-    return flat.view(mask.shape).to(mask.device)
+def keyed(values: dict[Measure, float | None], metric) -> dict[str, float | None]:
+    """``values`` under the keys ``metric(measure)`` gives them (a per-view row's entries)."""
+    return {metric(m).key: x for m, x in values.items()}
 
 
 def fusion_controls(pipeline: Pipeline, v: ViewImages) -> dict[str, tuple[float, Tensor]]:
-    """For each mask-fusion post-process of a training view: (coverage of its mask, the same
-    fusion with a random mask of that coverage). A post-process whose output is not
-    ``fuse(rendered, rainy, mask)`` of the mask found for it gets none (no control is better
-    than a wrong one)."""
+    """For each mask-fusion post-process of a training view (:class:`MaskFusion`): (coverage
+    of its mask, the same fusion under a random mask of that coverage, placed with the view's
+    seed). Other post-processes get none."""
     out: dict[str, tuple[float, Tensor]] = {}
     if v.rain is None:
         return out
     for key, post in pipeline.postprocess.items():
-        if key not in v.post:
-            continue
-        mask = fusion_mask(post, v.rendered, v.rain, v.rainy)
-        if mask is None or not torch.allclose(fuse(v.rendered, v.rainy, mask).clamp(0, 1), v.post[key], atol=1e-6):
-            continue
-        control = fuse(v.rendered, v.rainy, random_mask_like(mask, CONTROL_SEED + v.index)).clamp(0, 1)
-        out[key] = (float(mask.float().mean()), control)
+        if key in v.post and isinstance(post, MaskFusion):
+            control = post.control(v.rendered, v.rain, v.rainy, CONTROL_SEED + v.index)
+            out[key] = (control.coverage, control.control)
     return out
 
 
@@ -129,49 +94,44 @@ def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict,
     """One view's row of ``per_view``: its images against the clean and the rainy ones, the
     fusion controls (``controls``: post-process key -> (coverage, control image)), and its
     rain statistics (``true_directions``: of the true rain, see :func:`view_rain_stats`)."""
-    row: dict = {"view": v.name, "split": v.split,
-                 "psnr_vs_rainy": float(psnr(v.rendered, v.rainy))}
+    split, controls = v.split, controls or {}
+
+    def at(m: Measure) -> Metric:
+        return render(m, split)
+
+    row: dict = {"view": v.name, "split": split, at(PSNR_VS_RAINY).key: float(psnr(v.rendered, v.rainy))}
     if v.clean is not None:
-        row.update(image_metrics(v.rendered, v.clean, lpips))
-        if v.split == "train":
-            row.update({f"rainy_input_{k}": x for k, x in image_metrics(v.rainy, v.clean, lpips).items()})
+        row.update(keyed(image_metrics(v.rendered, v.clean, lpips), at))
+        if split == "train":
+            row.update(keyed(image_metrics(v.rainy, v.clean, lpips), rainy_input))
             for key, img in v.post.items():
-                row.update({f"{key}_{k}": x for k, x in image_metrics(img, v.clean, lpips).items()})
-            for key, (_, img) in (controls or {}).items():
-                row.update({f"{key}_random_{k}": x for k, x in image_metrics(img, v.clean, lpips).items()})
-    for key, (coverage, _) in (controls or {}).items():
-        row[f"{key}_coverage"] = coverage
+                row.update(keyed(image_metrics(img, v.clean, lpips), lambda m: post(m, key)))
+            for key, (_, img) in controls.items():
+                row.update(keyed(image_metrics(img, v.clean, lpips), lambda m: control(m, key)))
+    for key, (coverage, _) in controls.items():
+        row[post(COVERAGE, key).key] = coverage
     if v.clean is not None and v.true_rain is not None:
         wet = v.true_rain.amax(0) > RAIN_PIXEL
-        row.update(region_metrics(v.rendered, v.clean, v.true_rain, wet, v.rain))
-        if v.split == "train":  # the input is exact on dry pixels: only its rain counts
-            row["rainy_input_psnr_in_rain"] = region_psnr(v.rainy, v.clean, wet)["psnr_in_rain"]
+        row.update(keyed(region_metrics(v.rendered, v.clean, v.true_rain, wet, v.rain), at))
+        if split == "train":  # the input is exact on dry pixels: only its rain counts
+            row[rainy_input(PSNR_IN_RAIN).key] = region_psnr(v.rainy, v.clean, wet)[PSNR_IN_RAIN]
             for key, img in v.post.items():
-                row.update({f"{key}_{k}": x for k, x in region_metrics(img, v.clean, v.true_rain, wet).items()})
+                row.update(keyed(region_metrics(img, v.clean, v.true_rain, wet), lambda m: post(m, key)))
     row.update(view_rain_stats(v, angle_opts, true_directions))
     return row
 
 
 def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: int = 0,
-                   views: list[int] | None = None, time_limit: float | None = None
-                   ) -> tuple[list[dict], list[ViewImages]]:
+                   views: list[int] | None = None) -> tuple[list[dict], list[ViewImages]]:
     """Per-view metrics of ``views`` (default: every view), and the images of the first
-    ``keep`` training views. With ``time_limit`` (seconds) no view starts that would, at the
-    mean time a view has taken, end after it, except the first of each split."""
+    ``keep`` training views."""
     lpips = lpips or load_lpips(pipeline.device)
     options, directions = angle_options(pipeline), true_rain_directions(pipeline)
     scene = pipeline.scene
     rows, kept = [], []
     if views is None:
         views = list(scene.train_indices) + list(scene.eval_indices)
-    start = time.perf_counter()
-    train = set(scene.train_indices)
     for i in progress(views, "evaluating views"):
-        split = "train" if i in train else "heldout"
-        elapsed = time.perf_counter() - start
-        if (time_limit is not None and rows and elapsed + elapsed / len(rows) > time_limit
-                and any(r["split"] == split for r in rows)):
-            continue
         v = view_images(pipeline, i)
         rows.append(view_metrics(v, lpips, options, fusion_controls(pipeline, v), directions))
         if v.split == "train" and len(kept) < keep:
@@ -180,18 +140,16 @@ def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: i
 
 
 @torch.no_grad()
-def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None, views: list[int] | None = None,
-                      time_limit: float | None = None) -> dict:
-    """The protocol on a trained pipeline, on ``views`` (default: every view; see
-    :func:`evaluate_views` for ``time_limit``); ``evaluated`` in the result names the views
-    measured. With ``run_dir`` it also saves the comparison strips of a few training views
-    under ``run_dir/renders/strips`` (used by the report)."""
+def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None, views: list[int] | None = None) -> dict:
+    """The protocol on a trained pipeline, on ``views`` (default: every view); ``evaluated`` in
+    the result says how many views were measured and names them. The result depends on the
+    weights and the views only (no time, no clock): two evaluations of the same weights give
+    the same metrics. With ``run_dir`` it also saves the comparison strips of a few training
+    views in the run folder (used by the report), once every view is measured."""
     lpips = load_lpips(pipeline.device)
-    started = time.perf_counter()
-    rows, kept = evaluate_views(pipeline, lpips, keep=STRIP_VIEWS if run_dir is not None else 0,
-                                views=views, time_limit=time_limit)
+    rows, kept = evaluate_views(pipeline, lpips, keep=STRIP_VIEWS if run_dir is not None else 0, views=views)
     for v in kept:
-        save_strip(v, Path(run_dir) / "renders" / "strips" / f"{Path(v.name).stem}.png")
+        save_strip(v, RunFolder(run_dir).strips / f"{Path(v.name).stem}.png")
     scene = pipeline.scene
     return {
         "scene": scene.name,
@@ -205,23 +163,22 @@ def evaluate_pipeline(pipeline: Pipeline, run_dir: Path | None = None, views: li
         "evaluated": {"views": [r["view"] for r in rows],
                       "train": sum(r["split"] == "train" for r in rows),
                       "heldout": sum(r["split"] == "heldout" for r in rows),
-                      "all": len(rows) == scene.num_images,
-                      "seconds": round(time.perf_counter() - started, 2)},
+                      "all": len(rows) == scene.num_images},
         "summary": summarize(rows),
         "per_view": rows,
     }
 
 
 def write_metrics(run_dir: Path, metrics: dict) -> Path:
-    """Write ``metrics.json`` atomically, then the run's ``report.html`` presenting it.
+    """Write the run's metrics atomically, then the report presenting them.
 
     A report that cannot be written is reported on stderr and does not fail the run (the
     metrics are safe; ``rs-eval RUN_DIR`` rebuilds it)."""
-    path = Path(run_dir) / "metrics.json"
-    write_text_atomic(path, json.dumps(metrics, indent=2))
+    folder = RunFolder(run_dir)
+    path = folder.save_metrics(metrics)
     try:
         write_report(run_dir)
     except Exception as exc:  # the report is a view of the metrics; never lose a run over it
-        print(f"rainyscape: warning: could not write {Path(run_dir) / 'report.html'}: "
+        print(f"rainyscape: warning: could not write {folder.report_file}: "
               f"{type(exc).__name__}: {exc}", file=sys.stderr)
     return path

@@ -8,19 +8,21 @@ import math
 
 from torch import Tensor
 
+from rainyscape.components import MeasuresRainAngles
 from rainyscape.engine.pipeline import Pipeline
+from rainyscape.eval.metric_keys import (ANGLE_ERROR, CORRELATION, RAIN_ANGLE, RAIN_ANGLES, RESIDUAL_ANGLE,
+                                         TRUE_ANGLE, TRUE_ANGLES, rain_stat)
 from rainyscape.eval.views import ViewImages
 from rainyscape.imaging.angles import estimate_rain_angles, matched_angle_error_deg, streak_angle
 
 
 def angle_options(pipeline: Pipeline) -> dict:
-    """Histogram settings of the run's AGR term (``k``: its rain directions per image), so
-    evaluation measures angles as training did."""
-    for cfg, _ in pipeline.losses.values():
-        if cfg.name == "agr":
-            o = cfg.options
-            return {"bins": o.bins, "threshold": o.threshold, "smoothing": o.smoothing,
-                    "kernel": o.kernel, "k": int(o.top_k)}
+    """The angle settings of the run's term that measures rain angles (the AGR loss: its
+    histogram and ``k``, its rain directions per image), so evaluation measures angles as
+    training did; {} (the estimator's defaults) when no term measures them."""
+    for _, term in pipeline.losses.values():
+        if isinstance(term, MeasuresRainAngles):
+            return term.angle_settings()
     return {}
 
 
@@ -60,21 +62,21 @@ def view_rain_stats(v: ViewImages, options: dict, true_directions: int = 1) -> d
     truth = None
     if v.true_rain is not None and v.split == "train":
         truth = streak_angles_deg(v.true_rain, {**options, "k": max(1, true_directions)})
-        row["rain_angle_true_deg"] = truth[0] if truth else None
+        row[rain_stat(TRUE_ANGLE).key] = truth[0] if truth else None
         if len(truth) > 1:
-            row["rain_angles_true_deg"] = truth
+            row[rain_stat(TRUE_ANGLES).key] = truth
     if v.rain is not None:
         k = options.get("k", 1)
         # strongest first; as many as the AGR term uses or the true rain has (the first k of
         # them are the k strongest: the histogram's peaks are ranked)
         predicted = streak_angles_deg(v.rain, {**options, "k": max(len(truth or ()), k)})
         angles = predicted[:k]
-        row["rain_angle_deg"] = angles[0] if angles else None
+        row[rain_stat(RAIN_ANGLE).key] = angles[0] if angles else None
         if k > 1:  # multi-direction rain: every direction the AGR term uses
-            row["rain_angles_deg"] = angles
-        row["residual_angle_deg"] = streak_angle_deg(v.rainy - v.rendered, options)
+            row[rain_stat(RAIN_ANGLES).key] = angles
+        row[rain_stat(RESIDUAL_ANGLE).key] = streak_angle_deg(v.rainy - v.rendered, options)
         if v.true_rain is not None:
-            row["rain_correlation"] = correlation(v.rain, v.true_rain)
+            row[rain_stat(CORRELATION).key] = correlation(v.rain, v.true_rain)
         if truth:
-            row["rain_angle_error_deg"] = matched_angle_error_deg(predicted, truth)
+            row[rain_stat(ANGLE_ERROR).key] = matched_angle_error_deg(predicted, truth)
     return row

@@ -8,13 +8,16 @@ from __future__ import annotations
 import base64
 import html
 import io
-import json
 from pathlib import Path
 
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.errors import RainyScapeError
+from rainyscape.eval.metric_keys import (ANGLE_ERROR, CORRELATION, IMAGE_MEASURES, LPIPS, RAIN_ANGLE, RAIN_KEPT,
+                                         RAIN_RECOVERED, RESIDUAL_ANGLE, SPLITS, TRUE_ANGLE, Metric, post,
+                                         quick_key, rain_stat, rainy_input, render)
 from rainyscape.formats.atomic import write_text_atomic
 
-METRICS = ("psnr", "ssim", "lpips")
+POINTS_RECORD = "scene_points"  # log.jsonl: the sparse points the field started from (step 0)
 MAX_STRIPS = 6  # comparison strips shown (rs-render writes one per view under renders/strips)
 CSS = """
 body{font-family:system-ui,sans-serif;margin:24px auto;max-width:1200px;color:#222;padding:0 16px}
@@ -29,26 +32,33 @@ pre{background:#f7f7f7;padding:8px;overflow:auto;font-size:12px}.note{color:#666
 # ----------------------------------------------------------------------------- reading
 
 
-def read_log(path: Path) -> tuple[list[dict], list[dict]]:
-    """Training records and evaluation records of a run's log.jsonl (bad lines skipped:
-    a run killed mid-write leaves a truncated last line)."""
+def read_log(run_dir: Path) -> tuple[list[dict], list[dict]]:
+    """Training records and evaluation records of a run's log."""
     train, evals = [], []
-    if not path.is_file():
-        return train, evals
-    for line in path.read_text().splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        (evals if "eval" in rec else train).append(rec)
+    for rec in RunFolder(run_dir).log_records():
+        if POINTS_RECORD not in rec:
+            (evals if "eval" in rec else train).append(rec)
     return train, evals
 
 
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
+def read_points_record(run_dir: Path) -> dict | None:
+    """The log's record of the sparse points the field started from (None: not logged)."""
+    found = [rec[POINTS_RECORD] for rec in RunFolder(run_dir).log_records()
+             if isinstance(rec.get(POINTS_RECORD), dict)]
+    return found[-1] if found else None
+
+
+def points_line(record: dict) -> str:
+    """The points record in words: count, source, and the triangulation's figures."""
+    text = f"{record.get('points', 0)}, {record.get('source', 'unknown source')}"
+    tri = record.get("triangulation")
+    if tri:
+        text += f"; {tri.get('views')} training views"
+        if tri.get("points"):
+            text += (f", mean track {tri['mean_track_length']:.1f} views, mean reprojection error "
+                     f"{tri['mean_reprojection_error']:.2f} px")
+        text += ", from the cache" if tri.get("cached") else f", {tri.get('seconds', 0):.1f} s"
+    return text + f" (field.init={record.get('field_init')})"
 
 
 # ------------------------------------------------------------------------------- plots
@@ -98,11 +108,12 @@ def psnr_plot(train: list[dict], evals: list[dict]) -> str | None:
     if not series and not train:
         return None
     fig, ax = _figure()
-    names = {"train_psnr_clean": "training views vs clean", "train_psnr_rainy": "training views vs rainy",
-             "heldout_psnr_clean": "held-out views vs clean", "heldout_psnr_rainy": "held-out views vs rainy"}
+    views = {"train": "training views", "heldout": "held-out views"}
+    names = {quick_key(split, against): (f"{views[split]} vs {against}", "-" if against == "clean" else "--")
+             for split in SPLITS for against in ("clean", "rainy")}
     for key, pts in sorted(series.items()):
-        style = "-" if key.endswith("clean") else "--"
-        ax.plot(*zip(*pts), style, marker="o", ms=3, label=names.get(key, key))
+        label, style = names.get(key, (key, "-"))
+        ax.plot(*zip(*pts), style, marker="o", ms=3, label=label)
     batch = [(r["step"], r["psnr_input"]) for r in train if "psnr_input" in r]
     if batch:
         ax.plot(*zip(*batch), color="grey", alpha=0.5, lw=0.8, label="batch: B (+R) vs rainy")
@@ -157,50 +168,57 @@ def _fmt(value, digits: int = 3) -> str:
     return html.escape(str(value))
 
 
-def metric_rows(summary: dict, postprocess: list[str]) -> list[tuple[str, dict]]:
-    """(label, {metric: value}) rows of the evaluation protocol, in reading order."""
-    rows = [("rainy input (floor)", "rainy_input_"), ("render, training views", "train_")]
-    rows += [(f"render + {p}, training views", f"train_{p}_") for p in postprocess]
-    rows.append(("render, held-out views", "heldout_"))
-    out = []
-    for label, prefix in rows:
-        values = {m: summary.get(prefix + m) for m in METRICS}
-        if any(v is not None for v in values.values()):
-            out.append((label, values))
-    return out
+def metric_rows(summary: dict, postprocess: list[str]) -> list[tuple[str, list[Metric]]]:
+    """(label, its image metrics) rows of the evaluation protocol, in reading order; rows
+    without a value left out."""
+    rows = [("rainy input (floor)", [rainy_input(m) for m in IMAGE_MEASURES]),
+            ("render, training views", [render(m, "train") for m in IMAGE_MEASURES])]
+    rows += [(f"render + {p}, training views", [post(m, p) for m in IMAGE_MEASURES]) for p in postprocess]
+    rows.append(("render, held-out views", [render(m, "heldout") for m in IMAGE_MEASURES]))
+    return [(label, metrics) for label, metrics in rows if any(m.of(summary) is not None for m in metrics)]
 
 
 def metric_table(metrics: dict) -> str:
-    rows = metric_rows(metrics.get("summary", {}), metrics.get("postprocess", []))
+    summary = metrics.get("summary", {})
+    rows = metric_rows(summary, metrics.get("postprocess", []))
     if not rows:
-        return "<p>No metrics against clean images (the scene has none).</p>"
-    head = "<tr><th></th><th>PSNR ↑</th><th>SSIM ↑</th><th>LPIPS ↓</th></tr>"
-    body = "".join(
-        f"<tr><td>{html.escape(label)}</td><td>{_fmt(v['psnr'], 2)}</td><td>{_fmt(v['ssim'])}</td>"
-        f"<td>{_fmt(v['lpips']) if v['lpips'] is not None else 'n/a'}</td></tr>" for label, v in rows)
+        return "<p>No metrics against clean images (the scene has none).</p>" + evaluated_note(metrics)
+    head = "<tr><th></th>" + "".join(f"<th>{m.title} {m.arrow}</th>" for m in IMAGE_MEASURES) + "</tr>"
+    def cell(m: Metric) -> str:  # LPIPS may be unavailable here (the note says why)
+        return m.measure.format(m.of(summary), missing="n/a" if m.measure is LPIPS else "–")
+
+    body = "".join(f"<tr><td>{html.escape(label)}</td>" + "".join(f"<td>{cell(m)}</td>" for m in ms) + "</tr>"
+                   for label, ms in rows)
     note = ""
     lp = metrics.get("lpips", {})
     if lp and not lp.get("available", False):
         note = f"<p class='note'>LPIPS unavailable: {html.escape(lp.get('reason', ''))}.</p>"
-    done = metrics.get("evaluated", {})
-    if done and not done.get("all", True):
-        views = metrics.get("views", {})
-        total = views.get("train", 0) + views.get("heldout", 0)
-        note += (f"<p class='note'>Measured on {len(done.get('views', []))} of {total} views "
-                 f"({done.get('train', 0)} training, {done.get('heldout', 0)} held-out; the bounded "
-                 "evaluation at the end of rs-train). rs-eval RUN_DIR measures every view.</p>")
+    note += evaluated_note(metrics)
     return f"<table>{head}{body}</table>{note}"
 
 
+def evaluated_note(metrics: dict) -> str:
+    """How many views the metrics were measured on, and which."""
+    done = metrics.get("evaluated", {})
+    if not done:
+        return ""
+    views = metrics.get("views", {})
+    total = views.get("train", 0) + views.get("heldout", 0)
+    names = ", ".join(html.escape(str(v)) for v in done.get("views", []))
+    if done.get("all", True):
+        return f"<p class='note'>Measured on every view ({total}).</p>"
+    return (f"<p class='note'>Measured on {len(done.get('views', []))} of {total} views: {names} "
+            f"({done.get('train', 0)} training, {done.get('heldout', 0)} held-out; the fixed subset "
+            "of the evaluation at the end of rs-train, trainer.final_eval_views). rs-eval RUN_DIR "
+            "measures every view.</p>")
+
+
+RAIN_ROWS = (rain_stat(RAIN_ANGLE), rain_stat(RESIDUAL_ANGLE), rain_stat(TRUE_ANGLE), rain_stat(ANGLE_ERROR),
+             rain_stat(CORRELATION), render(RAIN_RECOVERED, "train"), render(RAIN_KEPT, "train"))
+
+
 def rain_table(summary: dict) -> str:
-    names = [("rain_angle_deg", "predicted rain streak angle (deg)"),
-             ("residual_angle_deg", "streak angle of the residual I - B (deg)"),
-             ("rain_angle_true_deg", "true rain streak angle (deg)"),
-             ("rain_angle_error_deg", "angle error, predicted vs true (deg)"),
-             ("rain_correlation", "correlation, predicted vs true rain layer"),
-             ("train_rain_recovered", "share of the true rain the predicted rain holds"),
-             ("train_rain_kept", "share of the true rain the render still shows")]
-    rows = [(label, summary[k]) for k, label in names if k in summary]
+    rows = [(m.measure.title, m.of(summary)) for m in RAIN_ROWS if m.key in summary]
     if not rows:
         return ""
     body = "".join(f"<tr><td>{html.escape(l)}</td><td>{_fmt(v)}</td></tr>" for l, v in rows)
@@ -210,15 +228,21 @@ def rain_table(summary: dict) -> str:
 
 
 def per_view_table(rows: list[dict]) -> str:
+    """The per-view values, one table per split (their keys differ: each names its split)."""
     if not rows:
         return ""
-    keys = [k for k in dict.fromkeys(k for r in rows for k in r) if k not in ("view", "split")]
-    head = "<tr><th>view</th><th>split</th>" + "".join(f"<th>{html.escape(k)}</th>" for k in keys) + "</tr>"
-    body = "".join(
-        f"<tr><td>{html.escape(r['view'])}</td><td>{r['split']}</td>"
-        + "".join(f"<td>{_fmt(r.get(k))}</td>" for k in keys) + "</tr>" for r in rows)
+    tables = []
+    for split in SPLITS:
+        mine = [r for r in rows if r.get("split") == split]
+        if not mine:
+            continue
+        keys = [k for k in dict.fromkeys(k for r in mine for k in r) if k not in ("view", "split")]
+        head = "<tr><th>view</th>" + "".join(f"<th>{html.escape(k)}</th>" for k in keys) + "</tr>"
+        body = "".join(f"<tr><td>{html.escape(r['view'])}</td>"
+                       + "".join(f"<td>{_fmt(r.get(k))}</td>" for k in keys) + "</tr>" for r in mine)
+        tables.append(f"<p class='note'>{split} views</p><table>{head}{body}</table>")
     return (f"<details><summary>Per-view values ({len(rows)} views)</summary>"
-            f"<table>{head}{body}</table></details>")
+            f"{''.join(tables)}</details>")
 
 
 # ------------------------------------------------------------------------------ images
@@ -240,24 +264,19 @@ def image_section(title: str, paths: list[Path], caption: str = "") -> str:
 # ------------------------------------------------------------------------------- page
 
 
-def _max_iters(run_dir: Path) -> str:
-    import yaml
-
+def _max_iters(folder: RunFolder) -> str:
     try:
-        return str(yaml.safe_load((run_dir / "config.yml").read_text())["trainer"]["max_iters"])
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return str(folder.config().trainer.max_iters)
+    except RainyScapeError:  # a config that no longer loads (a plugin gone): the page still shows
         return "?"
 
 
 def build_report(run_dir: Path) -> str:
-    run_dir = Path(run_dir)
-    if not (run_dir / "config.yml").is_file():
-        raise RainyScapeError(f"{run_dir}: not a run folder (no config.yml)")
-    metrics = _read_json(run_dir / "metrics.json")
-    from rainyscape.engine.run import read_status  # a dead owner's "running" reads as interrupted
-
-    status = read_status(run_dir)
-    train, evals = read_log(run_dir / "log.jsonl")
+    folder = RunFolder.check(run_dir)
+    run_dir = folder.path
+    metrics = folder.metrics()
+    status = folder.status()  # a dead owner's "running" reads as interrupted
+    train, evals = read_log(run_dir)
     title = f"{metrics.get('method', run_dir.parent.name)} on {metrics.get('scene', run_dir.parent.parent.name)}"
     step = train[-1]["step"] if train else status.get("step", 0)
     state = status.get("state", "")
@@ -266,9 +285,12 @@ def build_report(run_dir: Path) -> str:
     note = f" · {state}" if state in ("failed", "interrupted", "stopped") else ""
     parts = [f"<h1>RainyScape run: {html.escape(title)}</h1>",
              f"<p class='note'>{html.escape(str(run_dir.resolve()))} · step {step} of "
-             f"{_max_iters(run_dir)}{html.escape(note)} · {html.escape(str(status.get('time', '')))}</p>"]
+             f"{_max_iters(folder)}{html.escape(note)} · {html.escape(str(status.get('time', '')))}</p>"]
+    points = read_points_record(run_dir)
+    if points is not None:
+        parts.append(f"<p class='note'>Initial sparse points: {html.escape(points_line(points))}</p>")
     parts.append("<h2>Metrics</h2>" + (metric_table(metrics) if metrics else
-                                       "<p>No metrics.json yet (run rs-eval RUN_DIR).</p>"))
+                                       f"<p>No {RunFolder.METRICS} yet (run rs-eval RUN_DIR).</p>"))
     parts.append(rain_table(metrics.get("summary", {})))
     plots = [("Loss terms", loss_plot(train)),
              ("PSNR during training (paper Fig. 2 and 6)", psnr_plot(train, evals)),
@@ -276,15 +298,15 @@ def build_report(run_dir: Path) -> str:
     for name, uri in plots:
         if uri:
             parts.append(f"<h2>{name}</h2><img alt='{html.escape(name)}' src='{uri}'>")
-    strips = sorted((run_dir / "renders" / "strips").glob("*.png"))[:MAX_STRIPS]
+    strips = sorted(folder.strips.glob("*.png"))[:MAX_STRIPS]
     parts.append(image_section("Comparison strips", strips,
                                "rainy input | render | (post-processed) | ground truth | predicted rain | true rain"))
     parts.append(image_section("Embedding study (paper Fig. 8)",
-                               sorted((run_dir / "renders").glob("embedding_study*.png")),
+                               sorted(folder.renders.glob("embedding_study*.png")),
                                "predicted rain with N(0, 0.5) noise added to the scene state s, "
                                "the view vector v and the camera vector p"))
     parts.append(per_view_table(metrics.get("per_view", [])))
-    config_text = (run_dir / "config.yml").read_text()
+    config_text = folder.config_text()
     parts.append(f"<h2>Configuration</h2><pre>{html.escape(config_text)}</pre>")
     body = "\n".join(p for p in parts if p)
     return (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
@@ -292,4 +314,4 @@ def build_report(run_dir: Path) -> str:
 
 
 def write_report(run_dir: Path) -> Path:
-    return write_text_atomic(Path(run_dir) / "report.html", build_report(run_dir))
+    return write_text_atomic(RunFolder(run_dir).report_file, build_report(run_dir))

@@ -3,6 +3,7 @@ images evaluation and renders use, and the quick PSNR check the trainer logs dur
 
 from __future__ import annotations
 
+import random
 import sys
 from dataclasses import dataclass, field
 from typing import Iterable
@@ -13,6 +14,7 @@ from torch import Tensor
 from rainyscape.cameras import Cameras, Window
 from rainyscape.components import RenderOutput
 from rainyscape.engine.pipeline import Pipeline
+from rainyscape.eval.metric_keys import quick_key
 from rainyscape.eval.summary import mean_of
 from rainyscape.imaging.metrics import psnr
 
@@ -24,30 +26,32 @@ def progress(items: list, what: str, unit: str = "view") -> Iterable:
     return tqdm(items, desc=what, unit=unit, file=sys.stderr, disable=None, leave=False)
 
 
-def spread(items: list, count: int) -> list:
-    """``count`` items spread evenly over ``items`` (first and last included; all if fewer)."""
+# The end-of-run evaluation's subset is drawn with this seed, the same for every run: two
+# evaluations of the same weights measure the same views, and runs of one scene are comparable.
+EVAL_VIEW_SEED = 31
+
+
+def stratified(items: list, count: int, seed: int) -> list:
+    """``count`` of ``items`` (all if fewer), one from each of ``count`` equal runs of
+    consecutive items, at a position drawn with ``seed``: spread over the whole list (a rig's
+    views are ordered around it), and the same for the same seed anywhere."""
     if count <= 0 or count >= len(items):
         return list(items)
-    if count == 1:
-        return [items[len(items) // 2]]
-    step = (len(items) - 1) / (count - 1)
-    return [items[round(k * step)] for k in range(count)]
+    rng = random.Random(seed)
+    edges = [round(k * len(items) / count) for k in range(count + 1)]
+    return [items[rng.randrange(edges[k], edges[k + 1])] for k in range(count)]
 
 
-def choose_views(train: list[int], heldout: list[int], count: int) -> list[int]:
-    """Up to ``count`` views (0: all) spread evenly over each split, half from each where
-    both have enough, in an order that alternates the splits (so that a time limit still
-    leaves some of each)."""
+def choose_views(train: list[int], heldout: list[int], count: int, seed: int = EVAL_VIEW_SEED) -> list[int]:
+    """A fixed subset of up to ``count`` views (0: all): half from each split where both have
+    enough (unused room goes to the other), each split's share drawn by :func:`stratified` with
+    ``seed``; training views first."""
     if count <= 0:
         return list(train) + list(heldout)
     n_held = min(len(heldout), count // 2 if train else count)
     n_train = min(len(train), count - n_held)
     n_held = min(len(heldout), count - n_train)  # unused train room goes to held-out views
-    a, b = spread(list(train), n_train), spread(list(heldout), n_held)
-    out = []
-    for k in range(max(len(a), len(b))):
-        out += a[k:k + 1] + b[k:k + 1]
-    return out
+    return stratified(list(train), n_train, seed) + stratified(list(heldout), n_held, seed + 1)
 
 
 def to_float(u8: Tensor, device) -> Tensor:
@@ -125,8 +129,8 @@ def view_images(pipeline: Pipeline, index: int) -> ViewImages:
 @torch.no_grad()
 def quick_eval(pipeline: Pipeline, views: int) -> dict:
     """PSNR of the first ``views`` training and held-out renders vs the rainy and the clean
-    images (the paper's Fig. 2 curves): ``{train,heldout}_psnr_{rainy,clean}``, the clean
-    ones only when the scene has clean images, a split without views left out."""
+    images (the paper's Fig. 2 curves), under :func:`quick_key`: the clean ones only when the
+    scene has clean images, a split without views left out."""
     scene, dev = pipeline.scene, pipeline.device
     out: dict[str, float] = {}
     for split, indices in (("train", scene.train_indices), ("heldout", scene.eval_indices)):
@@ -139,7 +143,7 @@ def quick_eval(pipeline: Pipeline, views: int) -> dict:
             rainy_vals.append(float(psnr(rgb, to_float(scene.images[i], dev))))
             if scene.clean_images is not None:
                 clean_vals.append(float(psnr(rgb, to_float(scene.clean_images[i], dev))))
-        out[f"{split}_psnr_rainy"] = mean_of(rainy_vals)
+        out[quick_key(split, "rainy")] = mean_of(rainy_vals)
         if clean_vals:
-            out[f"{split}_psnr_clean"] = mean_of(clean_vals)
+            out[quick_key(split, "clean")] = mean_of(clean_vals)
     return out

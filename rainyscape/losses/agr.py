@@ -80,17 +80,22 @@ class AdaptiveGradientRotation(Loss):
         # Last estimated streak direction(s) in degrees, per view id (for reports).
         self.view_angles: dict[int, list[float]] = {}
 
+    def angle_settings(self) -> dict:
+        """:class:`rainyscape.components.MeasuresRainAngles`: how this term measures angles."""
+        c = self.config
+        return {"bins": c.bins, "threshold": c.threshold, "smoothing": c.smoothing, "kernel": c.kernel,
+                "k": int(c.top_k)}
+
     def estimate(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
         """Gradient directions theta (B, K) of the detached residual I - B, and validity."""
-        c = self.config
         residual = (ctx.target - ctx.rendered).detach()
-        return estimate_rain_angles(residual, bins=c.bins, k=c.top_k, threshold=c.threshold,
-                                    smoothing=c.smoothing, kernel=c.kernel)
+        return estimate_rain_angles(residual, **self.angle_settings())
 
     def __call__(self, ctx: LossContext) -> Tensor:
         rain = ctx.rain if ctx.rain is not None else torch.zeros_like(ctx.rendered)
         theta, valid = self.estimate(ctx)
-        self._record(ctx.view_ids, theta, valid)
+        if ctx.record:  # the network update's angles, not a latent update's crop
+            self._record(ctx.view_ids, theta, valid)
         return agr_loss(ctx.rendered, ctx.target, rain, theta, valid,
                         self.config.background_weight, self.config.kernel, self.config.gain)
 

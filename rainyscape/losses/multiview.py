@@ -23,32 +23,63 @@ from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.metrics import ssim_map
-from rainyscape.losses.multiview_evidence import (backproject, neighbour_colours, neighbour_table,
-                                                  rain_evidence)
+from rainyscape.losses.multiview_evidence import (backproject, evidence_over, neighbour_colours,
+                                                  neighbour_median, neighbour_table)
 from rainyscape.losses.rain_losses import dry_weight
 from rainyscape.scene import SceneData
 
 
 class _Evidence:
-    """The scene's cameras, training images and neighbour table; the evidence of a batch."""
+    """The scene's cameras, training images, neighbour table and every view's last rendered
+    depth (for the occlusion test: filled as batches render them); the evidence of a batch."""
 
-    def __init__(self, scene: SceneData, device: torch.device, views: int, min_views: int):
+    def __init__(self, scene: SceneData, device: torch.device, views: int, min_views: int,
+                 occlusion_tolerance: float):
         self.cameras = scene.cameras.to(device)
         self.images = scene.images.to(device).permute(0, 3, 1, 2).float() / 255.0
         self.neighbours = neighbour_table(self.cameras.centers, list(scene.train_indices), views)
         self.min_views = min_views
+        self.tolerance = occlusion_tolerance
+        self.depths = torch.full((scene.num_images, 1, scene.height, scene.width), float("nan"), device=device)
 
     def __call__(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
+        """The rain evidence of the batch (B, 3, h, w) and where it is defined (B, 1, h, w)."""
+        ref, defined = self.reference(ctx)
+        return evidence_over(ctx.target, ref, defined), defined
+
+    def reference(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
+        """The median of what the neighbour views see at the batch's pixels (B, 3, h, w; NaN
+        where undefined) and where it is defined (B, 1, h, w)."""
         if ctx.output is None or ctx.output.depth is None or ctx.window is None:
             raise ConfigError("multi-view rain evidence needs the field's depth and the batch window")
         depth = ctx.output.depth.detach()
         views = ctx.view_ids.to(depth.device)
+        if ctx.record:  # the network update's render (a latent update's crop says nothing new)
+            w = ctx.window
+            for i, v in enumerate(views.tolist()):
+                x0, y0 = int(w.x0[i]), int(w.y0[i])
+                self.depths[v, :, y0:y0 + w.height, x0:x0 + w.width] = depth[i]
         points = backproject(self.cameras[views], ctx.window, depth)
-        colours, valid = neighbour_colours(points, self.neighbours[views], self.cameras, self.images)
-        return rain_evidence(ctx.target, colours, valid, self.min_views)
+        colours, valid = neighbour_colours(points, self.neighbours[views], self.cameras, self.images,
+                                           self.depths if self.tolerance > 0 else None, self.tolerance)
+        return neighbour_median(colours, valid, self.min_views)
 
 
-class MultiviewPhotometric(Loss):
+class _WithEvidence(Loss):
+    """A term built on :class:`_Evidence`; checkpoints keep its depth cache, so a resumed run
+    votes as the uninterrupted one would."""
+
+    evidence: _Evidence | None = None
+
+    def state_dict(self) -> dict:
+        return {"depths": self.evidence.depths.cpu()} if self.evidence is not None else {}
+
+    def load_state_dict(self, state: dict) -> None:
+        if self.evidence is not None and "depths" in state:
+            self.evidence.depths.copy_(state["depths"])
+
+
+class MultiviewPhotometric(_WithEvidence):
     """Photometric loss weighted by how dry each pixel is, as the other views see it."""
 
     description = "mv-photometric: render vs input, rain pixels (other views' vote) weighted down"
@@ -60,6 +91,7 @@ class MultiviewPhotometric(Loss):
         min_views: int = bounded(2, 1)  # a pixel with fewer valid votes keeps full weight
         scale: float = bounded(0.05, 1e-4)  # evidence (grey levels) at which the weight is 1/e
         use_rain: bool = False  # the predicted rain (detached) lowers the weight too
+        occlusion: float = bounded(0.05, 0.0, 1.0)  # a neighbour nearer by this share does not vote (0: no test)
         residual: Literal["l2", "l1"] = "l2"
         ssim_weight: float = bounded(0.0, 0.0, 1.0)  # w: (1 - w) weighted residual + w weighted D-SSIM (3DGS: 0.2)
 
@@ -69,7 +101,7 @@ class MultiviewPhotometric(Loss):
 
     def setup(self, scene: SceneData, device: torch.device) -> None:
         c = self.config
-        self.evidence = _Evidence(scene, device, c.views, c.min_views)
+        self.evidence = _Evidence(scene, device, c.views, c.min_views, c.occlusion)
 
     def weights(self, ctx: LossContext) -> Tensor:
         evidence, _ = self.evidence(ctx)
@@ -90,7 +122,7 @@ class MultiviewPhotometric(Loss):
         return (w * per_pixel).sum() / w.sum().clamp_min(1e-6)
 
 
-class MultiviewRain(Loss):
+class MultiviewRain(_WithEvidence):
     """The predicted rain should be what a pixel shows beyond its neighbours' views."""
 
     description = "mv-rain: predicted rain vs the multi-view rain evidence"
@@ -101,15 +133,50 @@ class MultiviewRain(Loss):
     class Config:
         views: int = bounded(6, 2)
         min_views: int = bounded(2, 1)
+        occlusion: float = bounded(0.05, 0.0, 1.0)  # a neighbour nearer by this share does not vote (0: no test)
 
     def __init__(self, config: "MultiviewRain.Config | None" = None):
         super().__init__(config or self.Config())
         self.evidence: _Evidence | None = None
 
     def setup(self, scene: SceneData, device: torch.device) -> None:
-        self.evidence = _Evidence(scene, device, self.config.views, self.config.min_views)
+        c = self.config
+        self.evidence = _Evidence(scene, device, c.views, c.min_views, c.occlusion)
 
     def __call__(self, ctx: LossContext) -> Tensor:
         evidence, defined = self.evidence(ctx)
         mask = defined.to(evidence.dtype)
         return ((ctx.rain - evidence) ** 2 * mask).sum() / (3 * mask.sum()).clamp_min(1.0)
+
+
+class MultiviewAnchor(_WithEvidence):
+    """Where the rain head sees rain, the render B should be what the neighbour views see
+    there: R decides where, the neighbours decide how much (beyond the paper). The anchor is
+    the median of the occlusion-checked neighbours' colours at the pixel's point (the
+    rendered depth, detached); a pixel the head calls dry is left to the photometric loss."""
+
+    description = "mv-anchor: on the predicted rain, B vs the median of the neighbour views"
+    phases = ("joint",)
+    needs = ("rain",)
+
+    @dataclass
+    class Config:
+        views: int = bounded(6, 2)
+        min_views: int = bounded(2, 1)
+        occlusion: float = bounded(0.05, 0.0, 1.0)  # a neighbour nearer by this share does not vote (0: no test)
+        scale: float = bounded(0.02, 1e-4, 1.0)  # predicted rain (grey levels) at which a pixel counts 1 - 1/e
+
+    def __init__(self, config: "MultiviewAnchor.Config | None" = None):
+        super().__init__(config or self.Config())
+        self.evidence: _Evidence | None = None
+
+    def setup(self, scene: SceneData, device: torch.device) -> None:
+        c = self.config
+        self.evidence = _Evidence(scene, device, c.views, c.min_views, c.occlusion)
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        ref, defined = self.evidence.reference(ctx)
+        rainy = (1.0 - dry_weight(ctx.rain, self.config.scale)) * defined  # (B, 1, h, w), detached
+        diff = torch.where(defined, ctx.rendered - ref, torch.zeros_like(ctx.rendered)).abs()
+        self.metrics = {"anchored": float(rainy.mean())}
+        return (rainy * diff).sum() / (3 * rainy.numel())

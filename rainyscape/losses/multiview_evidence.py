@@ -3,9 +3,10 @@
 Rain streaks are bright, thin and differ from view to view; the scene does not. Every pixel
 of a batch is lifted to 3D with the field's rendered depth, projected into the k nearest
 training views, and compared with the median of what they see there: rain is where the
-pixel is brighter than that median. The median shrugs off a neighbour whose view is
-occluded or rainy itself; no learning is involved, so the evidence is there from the first
-joint step. Pure functions on tensors.
+pixel is brighter than that median. A neighbour whose own depth at the projection is nearer
+than the point (an occluder in front of it, judged by that view's last rendered depth) does
+not vote; the median shrugs off the remaining odd neighbour (rainy itself). No learning is
+involved, so the evidence is there from the first joint step. Pure functions on tensors.
 """
 
 from __future__ import annotations
@@ -34,13 +35,16 @@ def backproject(cameras: Cameras, window: Window, depth: Tensor) -> Tensor:
     return rays.origins + rays.directions * t[..., None]
 
 
-def neighbour_colours(points: Tensor, neighbours: Tensor, cameras: Cameras, images: Tensor
+def neighbour_colours(points: Tensor, neighbours: Tensor, cameras: Cameras, images: Tensor,
+                      depths: Tensor | None = None, occlusion_tolerance: float = 0.05
                       ) -> tuple[Tensor, Tensor]:
     """What neighbour views see at ``points``.
 
     points (B, h, w, 3), neighbours (B, k) view indices, images (N, 3, H, W) float.
-    Returns colours (B, k, 3, h, w) and validity (B, k, h, w): in front of the camera and
-    inside its image."""
+    Returns colours (B, k, 3, h, w) and validity (B, k, h, w): in front of the camera, inside
+    its image and, with ``depths`` (N, 1, H, W) z-depths of every view (NaN where unknown), not
+    hidden there: the view's depth at the projection is not nearer than the point's by more
+    than ``occlusion_tolerance`` of it."""
     b, h, w, _ = points.shape
     k = neighbours.shape[1]
     height, width = images.shape[-2:]
@@ -53,7 +57,27 @@ def neighbour_colours(points: Tensor, neighbours: Tensor, cameras: Cameras, imag
     sampled = F.grid_sample(images[neighbours.reshape(-1)], grid.reshape(b * k, h * w, 1, 2),
                             mode="bilinear", align_corners=False)  # (B k, 3, P, 1)
     colours = sampled.reshape(b, k, 3, h, w)
+    if depths is not None:
+        seen = F.grid_sample(depths[neighbours.reshape(-1)], grid.reshape(b * k, h * w, 1, 2),
+                             mode="nearest", align_corners=False).reshape(b, k, h * w)
+        valid = valid & ~(seen < z * (1.0 - occlusion_tolerance))  # NaN (unknown) keeps the vote
     return colours, valid.reshape(b, k, h, w)
+
+
+def neighbour_median(colours: Tensor, valid: Tensor, min_views: int = 2) -> tuple[Tensor, Tensor]:
+    """The median (B, 3, h, w) of what the valid neighbours see (colours (B, k, 3, h, w), valid
+    (B, k, h, w)), and where it is defined (B, 1, h, w): at least ``min_views`` of them (the
+    median is NaN elsewhere)."""
+    nan = torch.full_like(colours, float("nan"))
+    ref = torch.where(valid[:, :, None], colours, nan).nanmedian(dim=1).values
+    return ref, valid.sum(1, keepdim=True) >= min_views
+
+
+def evidence_over(observed: Tensor, ref: Tensor, defined: Tensor) -> Tensor:
+    """How much brighter ``observed`` (B, 3, h, w) is than the neighbours' median ``ref``, where
+    that is ``defined`` (0 elsewhere)."""
+    evidence = (observed - ref).clamp_min(0)
+    return torch.where(defined & torch.isfinite(evidence), evidence, torch.zeros_like(evidence))
 
 
 def rain_evidence(observed: Tensor, colours: Tensor, valid: Tensor, min_views: int = 2
@@ -63,9 +87,5 @@ def rain_evidence(observed: Tensor, colours: Tensor, valid: Tensor, min_views: i
     observed (B, 3, h, w), colours (B, k, 3, h, w), valid (B, k, h, w). Returns the evidence
     (B, 3, h, w) >= 0 and where it is defined (B, 1, h, w): at least ``min_views`` valid
     neighbours."""
-    nan = torch.full_like(colours, float("nan"))
-    ref = torch.where(valid[:, :, None], colours, nan).nanmedian(dim=1).values  # (B, 3, h, w)
-    defined = (valid.sum(1, keepdim=True) >= min_views)
-    evidence = (observed - ref).clamp_min(0)
-    evidence = torch.where(defined & torch.isfinite(evidence), evidence, torch.zeros_like(evidence))
-    return evidence, defined
+    ref, defined = neighbour_median(colours, valid, min_views)
+    return evidence_over(observed, ref, defined), defined

@@ -41,8 +41,12 @@ def dry_weight(layer: Tensor, scale: float) -> Tensor:
 
 
 def total_variation(images: Tensor, cap: float = 0.0) -> Tensor:
-    """Anisotropic L1 TV: (sum |dx| + sum |dy|) / number of elements of ``images``; with
-    ``cap`` > 0 each difference counts at most ``cap`` (steps above it get no gradient)."""
+    """Anisotropic L1 TV of (B, C, h, w) images: (sum |dx| + sum |dy|) / number of elements.
+    The authors' code divides by the pixel count (C times larger), but there TV acted on a
+    detached tensor and never trained anything; at that scale the paper's weight 0.5 costs
+    rainyscape-3dgs 2.5 dB on the demo scene (docs/rain.md, issue 28 defect 2), so the scale
+    every weight here was measured at stays. With ``cap`` > 0 each difference counts at most
+    ``cap`` (steps above it get no gradient)."""
     dx = (images[..., :, 1:] - images[..., :, :-1]).abs()
     dy = (images[..., 1:, :] - images[..., :-1, :]).abs()
     if cap > 0:

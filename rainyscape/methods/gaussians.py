@@ -21,16 +21,20 @@ from rainyscape.config import (ComponentConfig, LossConfig, MethodSpec, PhaseCon
                                TrainerConfig)
 from rainyscape.methods.rainyscape_nerf import PAPER_RAIN_HEAD_GPU, PAPER_WEIGHTS
 
-GS_ITERS = 1500  # CPU-friendly run (the demo in about 10 minutes on 2 cores); the paper's is 30k (trainer.max_iters=30000)
+# CPU run length: 100 steps per training view, from 1500 to 3000 steps (a 17-view capture
+# trains 1700 steps, a 30-view one or larger 3000: about 10 minutes on 2 cores at 240 px,
+# docs/benchmarks.md "Fitting real captures"); the paper's is 30k (profile=gpu).
+GS_ITERS, GS_ITERS_PER_VIEW, GS_MIN_ITERS = 3000, 100, 1500
 PAPER_WARMUP = 4000 / 30000  # the paper's warm-up: 4k of 30k steps
 # A smaller rain head than the paper's (same layout), as rainyscape-nerf uses on a CPU.
 CPU_RAIN_HEAD = {"lowres_channels": (32, 32, 32, 32), "highres_channels": 16}
-# CPU budget (docs/benchmarks.md, "Gaussian splatting"): at most 20k Gaussians, and one per
-# 5 training pixels on small scenes; refinements at least 100 steps apart in short runs.
-CPU_GAUSSIANS = {"max_gaussians": 20_000, "pixels_per_gaussian": 5, "min_refine_every": 100}
+# CPU budget (docs/benchmarks.md, "Fitting real captures"): at most 50k Gaussians, and one
+# per 5 training pixels on small scenes; refinements at least 50 steps apart in short runs;
+# 20k points filled in at the depth of the nearest SfM points (small views give few).
+CPU_GAUSSIANS = {"max_gaussians": 50_000, "pixels_per_gaussian": 5, "min_refine_every": 50, "init_fill": 20_000}
 # The GPU recipe: the 3DGS paper's run, its schedule unscaled (densify from 500 to 15k every
 # 100, resets every 3k), no Gaussian cap.
-GS_GPU = ["trainer.max_iters=30000", "field.max_gaussians=0", "field.pixels_per_gaussian=0",
+GS_GPU = ["trainer.max_iters=30000", "trainer.iters_per_view=0", "field.init_fill=0", "field.max_gaussians=0", "field.pixels_per_gaussian=0",
           "field.min_refine_every=0", "trainer.eval_every=5000", "trainer.checkpoint_every=5000"]
 
 gaussians_3dgs = MethodSpec(
@@ -45,6 +49,8 @@ gaussians_3dgs = MethodSpec(
                                           options={"ssim_weight": 0.2})},
         trainer=TrainerConfig(
             max_iters=GS_ITERS,
+            iters_per_view=GS_ITERS_PER_VIEW,
+            min_iters=GS_MIN_ITERS,
             eval_every=500,
             checkpoint_every=1000,
         ),

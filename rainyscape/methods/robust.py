@@ -54,9 +54,8 @@ def _dssim_fraction(base: MethodSpec) -> float:
         if "fit" not in loss.phases:
             continue
         opts = loss.options  # a recipe: plain dicts
-        for key in ("ssim_weight", "lambda_dssim", "dssim_weight"):
-            if key in opts:
-                return float(opts[key])
+        if "ssim_weight" in opts:  # l1-ssim's D-SSIM share
+            return float(opts["ssim_weight"])
     return 0.2  # the 3DGS paper's lambda when the counterpart does not say
 
 

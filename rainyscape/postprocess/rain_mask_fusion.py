@@ -13,9 +13,21 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from rainyscape.components import PostProcess
+from rainyscape.components import FusionControl, PostProcess
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
+
+
+def robust_threshold(rain: Tensor, sigmas: float) -> float:
+    """A rain level that separates a view's streaks from its dry pixels, from the view's own
+    predicted rain (3, H, W): the median of the per-pixel rain plus ``sigmas`` robust standard
+    deviations (1.4826 x the median absolute deviation). Streaks are a minority of the pixels
+    (2-20 % in light to heavy rain), so the median and its deviation describe the dry ones,
+    whatever the head's overall level; a constant can sit above every streak (an empty mask)."""
+    level = rain.amax(0).flatten()
+    median = level.median()
+    spread = 1.4826 * (level - median).abs().median()
+    return float(median + sigmas * spread.clamp_min(1e-6))
 
 
 def rain_mask(rain: Tensor, threshold: float, dilation: int) -> Tensor:
@@ -33,14 +45,26 @@ def fuse(rendered: Tensor, rainy: Tensor, mask: Tensor) -> Tensor:
     return torch.where(mask, rendered, rainy)
 
 
+def random_mask_like(mask: Tensor, seed: int) -> Tensor:
+    """A boolean mask of ``mask``'s shape with exactly as many pixels set, placed uniformly at
+    random (``torch.randperm`` with ``seed``: the same seed gives the same mask anywhere)."""
+    n, k = mask.numel(), int(mask.sum())
+    flat = torch.zeros(n, dtype=torch.bool)
+    flat[torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:k]] = True
+    return flat.view(mask.shape).to(mask.device)
+
+
 class RainMaskFusion(PostProcess):
     """Keep rendered pixels where rain is predicted and input pixels elsewhere."""
 
-    description = "rain-mask fusion: rendered where predicted rain > threshold, input elsewhere"
+    description = "rain-mask fusion: rendered where the predicted rain stands out, input elsewhere"
 
     @dataclass
     class Config:
-        threshold: float = bounded(0.02, 0.0, 1.0)  # rain level (grey levels in [0, 1]) that counts as rain
+        # rain level (grey levels in [0, 1]) that counts as rain; 0: per view, `sigmas` robust
+        # deviations above the median of the view's predicted rain (robust_threshold)
+        threshold: float = bounded(0.0, 0.0, 1.0)
+        sigmas: float = bounded(3.0, above=0.0, hi=100.0)
         dilation: int = bounded(1, 0, 64)  # grow the mask by this many pixels
 
     def __init__(self, config: "RainMaskFusion.Config | None" = None):
@@ -50,6 +74,17 @@ class RainMaskFusion(PostProcess):
         if self.config.dilation < 0:
             raise ConfigError(f"postprocess dilation must be >= 0, got {self.config.dilation}")
 
+    def mask(self, rain: Tensor) -> Tensor:
+        c = self.config
+        threshold = c.threshold if c.threshold > 0 else robust_threshold(rain, c.sigmas)
+        return rain_mask(rain, threshold, c.dilation)
+
     def __call__(self, rendered: Tensor, rain: Tensor, rainy: Tensor) -> Tensor:
-        mask = rain_mask(rain, self.config.threshold, self.config.dilation)
-        return fuse(rendered, rainy, mask)
+        return fuse(rendered, rainy, self.mask(rain))
+
+    def control(self, rendered: Tensor, rain: Tensor, rainy: Tensor, seed: int) -> FusionControl:
+        """:class:`rainyscape.components.MaskFusion`: the mask's coverage, and the fusion under
+        a random mask of that coverage."""
+        mask = self.mask(rain)
+        return FusionControl(float(mask.float().mean()),
+                             fuse(rendered, rainy, random_mask_like(mask, seed)).clamp(0, 1))

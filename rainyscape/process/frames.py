@@ -8,6 +8,7 @@ counting pass), holding one candidate per window, so long clips do not fill the 
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,10 @@ from rainyscape.dataparsers.images import IMAGE_SUFFIXES, natural_key, write_png
 from rainyscape.errors import DataError
 
 MIN_VIEWS = 2  # two-view geometry is the least SfM can start from
+# A "35 mm equivalent" focal length is the one giving a 36 x 24 mm frame the same diagonal field
+# of view (the EXIF standard's definition), so it converts through the image diagonal.
+FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
+EXIF_IFD, FOCAL_35MM_TAG = 0x8769, 0xA405  # Exif sub-IFD; FocalLengthIn35mmFilm
 
 
 @dataclass
@@ -33,6 +38,7 @@ class Frame:
     name: str  # file name written in the frames folder
     source: str  # video frame index or the original file name
     sharpness: float
+    focal_px: float | None = None  # focal length from the photo's EXIF, in pixels of the written frame
 
 
 def laplacian_variance(rgb: np.ndarray) -> float:
@@ -67,6 +73,47 @@ def prepare_frame(rgb: np.ndarray, options: FrameOptions) -> np.ndarray:
         size = (max(1, round(rgb.shape[1] * f)), max(1, round(rgb.shape[0] * f)))
         rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
     return np.ascontiguousarray(rgb)
+
+
+def frame_scale(shape: tuple[int, int], options: FrameOptions) -> float:
+    """Pixels of the written frame per pixel of the original (``shape``: its height, width):
+    the resize after the crop (a crop alone keeps the focal length in pixels)."""
+    h, w = shape
+    top, bottom, left, right = options.crop
+    ch = h - int(round(top * h)) - int(round(bottom * h))
+    cw = w - int(round(left * w)) - int(round(right * w))
+    side = max(ch, cw)
+    if 0 < options.max_side < side:
+        return max(1, round(cw * options.max_side / side)) / cw
+    return 1.0
+
+
+def exif_focal_35mm(path: Path) -> float | None:
+    """The photo's 35 mm equivalent focal length (EXIF FocalLengthIn35mmFilm, mm), if stored."""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            value = im.getexif().get_ifd(EXIF_IFD).get(FOCAL_35MM_TAG)
+        value = float(value) if value is not None else 0.0
+    except Exception:  # noqa: BLE001 - no or unreadable EXIF: no prior, SfM estimates the focal length
+        return None
+    return value if math.isfinite(value) and value > 0 else None
+
+
+def focal_pixels(focal_35mm: float, width: int, height: int) -> float:
+    """A 35 mm equivalent focal length in pixels of a ``width`` x ``height`` image."""
+    return focal_35mm / FULL_FRAME_DIAGONAL_MM * math.hypot(width, height)
+
+
+def shared_focal(frames: list[Frame], tolerance: float = 0.01) -> float | None:
+    """The focal length (pixels) every frame's EXIF agrees on, within ``tolerance``; None when
+    a frame has none or they differ (a zoom, mixed cameras: SfM estimates it)."""
+    focals = [f.focal_px for f in frames]
+    if not focals or any(f is None for f in focals):
+        return None
+    lo, hi = min(focals), max(focals)
+    return float(np.median(focals)) if hi <= lo * (1 + tolerance) else None
 
 
 def _ffmpeg_reason(exc: Exception) -> str:
@@ -184,7 +231,8 @@ def read_photo(path: Path) -> np.ndarray:
 
 
 def copy_photos(folder: Path, out_dir: Path, options: FrameOptions, progress: bool = True) -> list[Frame]:
-    """Write every photo of ``folder`` as ``<stem>.png`` (upright, cropped, resized, no EXIF)."""
+    """Write every photo of ``folder`` as ``<stem>.png`` (upright, cropped, resized, no EXIF),
+    keeping the focal length its EXIF gives (in pixels of the written frame) on its Frame."""
     from tqdm import tqdm
 
     check_crop(options.crop)
@@ -192,11 +240,15 @@ def copy_photos(folder: Path, out_dir: Path, options: FrameOptions, progress: bo
     out_dir.mkdir(parents=True, exist_ok=True)
     frames, sizes = [], {}
     for path in tqdm(files, desc="reading photos", unit="image", disable=not progress):
-        rgb = prepare_frame(read_photo(path), options)
+        photo = read_photo(path)
+        rgb = prepare_frame(photo, options)
         sizes.setdefault(rgb.shape[:2], path.name)
         name = f"{path.stem}.png"
         write_png(out_dir / name, rgb)  # PNG: no EXIF block
-        frames.append(Frame(name, path.name, laplacian_variance(rgb)))
+        f35 = exif_focal_35mm(path)
+        # The diagonal is the same before and after the EXIF turn.
+        focal = focal_pixels(f35, photo.shape[1], photo.shape[0]) * frame_scale(photo.shape[:2], options) if f35 else None
+        frames.append(Frame(name, path.name, laplacian_variance(rgb), focal))
     if len(sizes) > 1:
         shown = ", ".join(f"{n} is {w}x{h}" for (h, w), n in sizes.items())
         raise DataError(f"{folder}: the photos differ in size ({shown}); one scene needs one size "

@@ -17,16 +17,17 @@ import contextlib
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Iterator
 
 from rainyscape.process.frames import (Frame, FrameOptions, check_crop, check_video, copy_photos,
-                                       extract_video_frames, list_photos)
+                                       extract_video_frames, list_photos, shared_focal)
 from rainyscape.process.output import REPORT, WORK_DIR, WRITTEN_KEY, scene_files, staged_scene
-from rainyscape.process.sfm import (Registration, SfmOptions, check_registration,
-                                    colmap_log, extract_features, incremental_mapping,
-                                    largest_model, match_features, registration_report, undistort)
+from rainyscape.process.sfm import (RELAXED_ABS_POSE_MIN_INLIERS, Registration, SfmOptions,
+                                    check_registration, colmap_log, extract_features,
+                                    incremental_mapping, largest_model, mapping_attempt,
+                                    match_features, registration_report, undistort)
 from rainyscape.process.writers import write_nerfstudio_files
 
 
@@ -91,6 +92,12 @@ def _build(kind: str, source: Path, scene_dir: Path, total: int, options: Proces
         else:
             frames = copy_photos(source, frames_dir, options.frames, options.progress)
     names = [f.name for f in frames]
+    focal = shared_focal(frames) if options.sfm.exif_focal and not options.sfm.focal_prior else None
+    if focal:
+        options = replace(options, sfm=replace(options.sfm, focal_prior=focal))
+        if options.progress:
+            print(f"      focal length from the photos' EXIF: {focal:.1f} px (a prior SfM refines)",
+                  file=sys.stderr)
     database = work / "database.db"
     with colmap_log(options.sfm.verbose):
         with stages.stage(f"SIFT features ({len(names)} frames)"):
@@ -102,20 +109,26 @@ def _build(kind: str, source: Path, scene_dir: Path, total: int, options: Proces
                                          total=len(names), progress=options.progress)
             index, model = largest_model(models)
             report = registration_report(model, names, models)
+            model_dir = work / "sparse" / str(index)
+        if options.sfm.retry and report.unregistered:
+            stages.count += 1  # a stage only runs when frames were left out
+            with stages.stage(f"mapping again, relaxed ({len(report.unregistered)} frames left out)"):
+                model_dir, model, report = _relaxed_retry(database, frames_dir, work, names, options,
+                                                          (model_dir, model, report))
         if options.progress:
             print(f"      {report.summary()}", file=sys.stderr)
         warning = check_registration(report, options.sfm, source)
         if warning and options.progress:
             print(warning, file=sys.stderr)
         with stages.stage("undistorting to pinhole"):
-            undistort(work / "sparse" / str(index), frames_dir, scene_dir, options.sfm.num_threads)
+            undistort(model_dir, frames_dir, scene_dir, options.sfm.num_threads)
     with stages.stage("writing transforms.json"):
         import pycolmap
 
         write_nerfstudio_files(pycolmap.Reconstruction(scene_dir / "sparse" / "0"), scene_dir)
     cam = next(iter(model.cameras.values()))
     content = {
-        "input": str(source), "kind": kind, "model_index": int(index),
+        "input": str(source), "kind": kind, "model": str(model_dir.relative_to(scene_dir)),
         "registration": report.to_json(),
         "camera": {"model": cam.model_name, "params": [float(p) for p in cam.params],
                    "width": cam.width, "height": cam.height},
@@ -127,6 +140,26 @@ def _build(kind: str, source: Path, scene_dir: Path, total: int, options: Proces
     }
     (scene_dir / REPORT).write_text(json.dumps(content, indent=2))
     return frames, report, warning
+
+
+def _relaxed_retry(database: Path, frames_dir: Path, work: Path, names: list[str],
+                   options: ProcessOptions, first: tuple) -> tuple:
+    """Map again with relaxed registration (sfm.incremental_mapping(relaxed=True)); the model
+    that registers more frames wins (the first on a tie). Both attempts go into the report."""
+    first_dir, first_model, first_report = first
+    models = incremental_mapping(database, frames_dir, work / "sparse_relaxed", options.sfm,
+                                 total=len(names), progress=options.progress, relaxed=True)
+    index, model = largest_model(models)
+    report = registration_report(model, names, models)
+    better = len(report.registered) > len(first_report.registered)
+    attempts = [mapping_attempt("default", first_report, not better),
+                mapping_attempt(f"relaxed (abs_pose_min_num_inliers={RELAXED_ABS_POSE_MIN_INLIERS}, "
+                                "two-view tracks kept)", report, better)]
+    if not better:
+        first_report.attempts = attempts
+        return first_dir, first_model, first_report
+    report.attempts = attempts
+    return work / "sparse_relaxed" / str(index), model, report
 
 
 def process_video(video: Path, scene_dir: Path, options: ProcessOptions | None = None) -> ProcessResult:

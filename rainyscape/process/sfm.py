@@ -1,6 +1,12 @@
 """Structure from motion with the pycolmap wheel (no colmap binary): features, matching,
 incremental mapping, choice of the largest model, registration check and undistortion.
 
+Choices for handheld captures (measured on a 44-photo phone orbit, docs/process.md): SIFT
+with affine shape estimation, whose features survive the large viewpoint changes of an orbit
+(33 -> 42 photos registered), the focal length from the photos' EXIF as a prior, and, when
+frames are left out, a second mapping with relaxed registration thresholds (kept only when it
+registers more).
+
 pycolmap 4.x API. Loop detection in sequential matching needs a vocabulary tree; when the user
 gives none (the stock trees are downloads), one is built from the clip's own SIFT descriptors,
 which is enough to find revisited places within one capture.
@@ -13,7 +19,7 @@ import math
 import os
 import shutil
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
@@ -27,6 +33,8 @@ MATCHERS = ("sequential", "exhaustive")
 WARN_FRACTION = 0.8  # fewer registered frames than this fraction: warn
 SMALL_SET = 5  # fewer frames than this: keep points seen by two frames only
 MIN_VOCAB_DESCRIPTORS = 6400  # fewer SIFT descriptors in the clip: no loop detection
+# The retry's registration threshold: 2D-3D inliers a frame needs (COLMAP's default: 30).
+RELAXED_ABS_POSE_MIN_INLIERS = 15
 
 
 @dataclass
@@ -38,8 +46,13 @@ class SfmOptions:
     loop_detection: bool = True  # sequential: also match revisited places
     vocab_tree: str = ""  # COLMAP vocabulary tree for loop detection (empty: build one)
     max_features: int = 8192  # SIFT features per image
+    affine_shape: bool = True  # SIFT with affine shape estimation: robust to viewpoint change
+    domain_size_pooling: bool = False  # DSP-SIFT descriptors (costlier; no gain measured with affine shape)
+    retry: bool = True  # frames left out: map again with relaxed registration, keep the better model
     min_registered: float = 0.5  # fail when fewer frames than this fraction register
     init_min_tri_angle: float = 16.0  # degrees; lower it for narrow baselines (a stereo pair)
+    exif_focal: bool = True  # start from the focal length the photos' EXIF gives (when they agree)
+    focal_prior: float = 0.0  # focal length in pixels the frames were taken with, 0: unknown
     num_threads: int = -1  # -1: all cores
     seed: int = 0
     verbose: bool = False  # show COLMAP's own log
@@ -69,6 +82,7 @@ class Registration:
     mean_reprojection_error: float  # pixels
     num_points: int
     model_sizes: list[int]  # registered frames of every model found, largest first
+    attempts: list[dict] = field(default_factory=list)  # each mapping tried: settings, registered, kept
 
     @property
     def fraction(self) -> float:
@@ -81,6 +95,9 @@ class Registration:
         if len(self.model_sizes) > 1:
             text += (f"; {len(self.model_sizes)} separate models of {self.model_sizes} frames, "
                      "kept the largest")
+        if len(self.attempts) > 1:
+            text += "; " + ", ".join(f"{a['mapper']} mapping: {a['registered']}" + (" (kept)" if a["kept"] else "")
+                                     for a in self.attempts)
         return text
 
     def to_json(self) -> dict:
@@ -88,7 +105,7 @@ class Registration:
                 "fraction": round(self.fraction, 4),
                 "mean_reprojection_error_px": round(self.mean_reprojection_error, 4),
                 "num_points": self.num_points, "model_sizes": self.model_sizes,
-                "unregistered": self.unregistered}
+                "unregistered": self.unregistered, "attempts": self.attempts}
 
 
 @contextlib.contextmanager
@@ -125,10 +142,29 @@ def extract_features(database: Path, image_dir: Path, names: list[str], opts: Sf
     reader.camera_model = opts.camera_model
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = opts.max_features
+    extraction.sift.estimate_affine_shape = opts.affine_shape
+    extraction.sift.domain_size_pooling = opts.domain_size_pooling
     extraction.num_threads = opts.num_threads
     mode = pycolmap.CameraMode.SINGLE if opts.single_camera else pycolmap.CameraMode.PER_IMAGE
     pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=mode,
                               reader_options=reader, extraction_options=extraction)
+    if opts.focal_prior > 0:
+        set_focal_prior(database, opts.focal_prior)
+
+
+def set_focal_prior(database: Path, focal: float) -> None:
+    """Start every camera from a known focal length, marked as a prior: verification then
+    fits essential matrices (calibrated pairs) instead of fundamental ones, and the mapper
+    starts from the right field of view (PNG frames carry no EXIF for COLMAP to read)."""
+    import pycolmap
+
+    with pycolmap.Database.open(database) as db:
+        for cam in db.read_all_cameras():
+            params = np.array(cam.params, dtype=np.float64)
+            params[list(cam.focal_length_idxs())] = focal
+            cam.params = params
+            cam.has_prior_focal_length = True
+            db.update_camera(cam)
 
 
 def build_vocab_tree(database: Path, out_path: Path, seed: int, num_threads: int,
@@ -186,8 +222,10 @@ def match_features(database: Path, work_dir: Path, opts: SfmOptions) -> None:
 
 
 def incremental_mapping(database: Path, image_dir: Path, out_dir: Path, opts: SfmOptions,
-                        total: int, progress: bool) -> dict:
-    """Incremental SfM; returns every model found, keyed by its index."""
+                        total: int, progress: bool, relaxed: bool = False) -> dict:
+    """Incremental SfM; returns every model found, keyed by its index. ``relaxed``: frames
+    register with fewer 2D-3D inliers, and points seen by two frames are kept (they are the
+    3D points a weakly connected frame can register against)."""
     import pycolmap
     from tqdm import tqdm
 
@@ -198,7 +236,9 @@ def incremental_mapping(database: Path, image_dir: Path, out_dir: Path, opts: Sf
     pipeline.extract_colors = True
     pipeline.mapper.init_min_tri_angle = opts.init_min_tri_angle
     # In a handful of photos most points are seen twice only; COLMAP's default drops those.
-    pipeline.triangulation.ignore_two_view_tracks = total >= SMALL_SET
+    pipeline.triangulation.ignore_two_view_tracks = total >= SMALL_SET and not relaxed
+    if relaxed:
+        pipeline.mapper.abs_pose_min_num_inliers = RELAXED_ABS_POSE_MIN_INLIERS
     out_dir.mkdir(parents=True, exist_ok=True)
     bar = tqdm(total=total, desc="registering", unit="frame", disable=not progress)
     try:  # the callback fires as each frame after the initial pair is tried
@@ -209,6 +249,12 @@ def incremental_mapping(database: Path, image_dir: Path, out_dir: Path, opts: Sf
     finally:
         bar.close()
     return dict(models)
+
+
+def mapping_attempt(name: str, report: "Registration", kept: bool) -> dict:
+    return {"mapper": name, "registered": len(report.registered),
+            "mean_reprojection_error_px": round(report.mean_reprojection_error, 4),
+            "num_points": report.num_points, "kept": kept}
 
 
 def largest_model(models: dict):

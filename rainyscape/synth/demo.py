@@ -13,17 +13,13 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from rainyscape.formats.cache import cache_root
 from rainyscape.synth.simulate import SIM_VERSION, generate
 
 # The medium-rain crossroad at 128 px, 3 x 6 views: rainyscape-3dgs trains on it in about
 # 5 minutes on 2 cores (docs/benchmarks.md, "Demo runs").
 DEMO_PRESET = "crossroad"
 DEMO_SIZE = {"rows": 3, "cols": 6, "width": 128, "height": 128}
-
-
-def cache_root() -> Path:
-    env = os.environ.get("RAINYSCAPE_CACHE", "").strip()
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "rainyscape"
 
 
 def demo_path() -> Path:

@@ -45,15 +45,17 @@ def make_dirs(out: Path) -> None:
         (out / sub).mkdir(parents=True, exist_ok=True)
 
 
-def write_view(out: Path, stem: str, rainy: np.ndarray, clean: np.ndarray, depth: np.ndarray,
+def write_view(out: Path, stem: str, rainy: np.ndarray, clean: np.ndarray, depth: np.ndarray | None,
                rain_alpha: np.ndarray, rain_color: np.ndarray, haze: np.ndarray | None = None) -> None:
-    """Write one view's files (float images in [0, 1]; ``haze``: fog transmission, if any)."""
+    """Write one view's files (uint8 images; ``depth``: None when unknown
+    (a real capture); ``haze``: fog transmission, if any)."""
     write_png(out / RAINY_DIR / f"{stem}.png", rainy)
     write_png(out / CLEAN_DIR / f"{stem}.png", clean)
     rgba = np.concatenate([to_uint8(rain_color), to_uint8(rain_alpha)[..., None]], -1)
     write_png(out / RAIN_DIR / f"{stem}.png", rgba)
-    scipy.io.savemat(out / DEPTH_DIR / f"{stem}.mat", {DEPTH_KEY: depth.astype(np.float32)},
-                     do_compression=True)
+    if depth is not None:
+        scipy.io.savemat(out / DEPTH_DIR / f"{stem}.mat", {DEPTH_KEY: depth.astype(np.float32)},
+                         do_compression=True)
     if haze is not None:
         (out / HAZE_DIR).mkdir(exist_ok=True)
         write_png(out / HAZE_DIR / f"{stem}.png", np.repeat(to_uint8(haze)[..., None], 3, -1))

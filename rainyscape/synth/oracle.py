@@ -18,14 +18,14 @@ import numpy as np
 
 from rainyscape.errors import DataError
 from rainyscape.synth.params import SIM_VERSION
-from rainyscape.synth.render import EDGE_FACTOR
+from rainyscape.synth.raycast import EDGE_FACTOR
 
 
 @lru_cache(maxsize=4)
 def _scene(folder: str, stamp: float):
     """Renderer and cameras of a scene folder (cached per folder and scene.json version)."""
     from rainyscape.synth.presets import PRESETS
-    from rainyscape.synth.render import SceneRenderer
+    from rainyscape.synth.raycast import SceneRenderer
     from rainyscape.synth.rig import make_rig
     from rainyscape.synth.scenes import build_scene
 
@@ -39,7 +39,7 @@ def _scene(folder: str, stamp: float):
     spec = build_scene(scene, int(info["seed"]))
     rig = make_rig(spec.rig, int(info["rows"]), int(info["cols"]), int(info["width"]), int(info["height"]),
                    info.get("trajectory", "sphere"))
-    from rainyscape.synth.render import default_samples
+    from rainyscape.synth.raycast import default_samples
 
     stored = (info.get("sampling") or {}).get("samples") or default_samples(int(info["width"]), int(info["height"]))
     return SceneRenderer(spec), rig.cameras(), int(info["seed"]), int(stored)

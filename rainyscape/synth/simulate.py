@@ -6,19 +6,21 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from rainyscape.errors import ConfigError, DataError
+from rainyscape.config.schema import SEED_MAX, check_range
+from rainyscape.errors import ConfigError
+from rainyscape.formats.output import staged_folder
 from rainyscape.imaging.metrics import psnr, ssim
 from rainyscape.synth import layout
 from rainyscape.synth.presets import PRESETS
 from rainyscape.synth.params import SIM_VERSION, RainConfig
 from rainyscape.synth.rain import make_drop_field, render_rain
-from rainyscape.synth.render import EDGE_FACTOR, SceneRenderer, ViewRender, default_samples
+from rainyscape.synth.raycast import EDGE_FACTOR, SceneRenderer, ViewRender, default_samples
 from rainyscape.synth.rig import make_rig
 from rainyscape.synth.scenes import build_scene
 
@@ -27,6 +29,7 @@ TRAJECTORIES = ("sphere", "video")
 
 
 def rain_config(preset_rain: dict, overrides: dict) -> RainConfig:
+    """The preset's rain with ``overrides`` (numbers or text), every value range-checked."""
     valid = RainConfig.keys()
     unknown = [k for k in overrides if k not in valid]
     if unknown:
@@ -40,7 +43,13 @@ def rain_config(preset_rain: dict, overrides: dict) -> RainConfig:
             raise ConfigError(f"rain option {key}: cannot read '{value}' as a number") from None
         if not np.isfinite(values[key]):
             raise ConfigError(f"rain option {key}: {value} is not finite")
-    return replace(cfg, **values)
+    cfg = replace(cfg, **values)
+    for f in fields(RainConfig):
+        check_range(getattr(cfg, f.name), f.metadata, f.name)
+    if cfg.radius_max_mm < cfg.radius_min_mm:
+        raise ConfigError(f"radius_max_mm: must be at least radius_min_mm ({cfg.radius_min_mm:g}), "
+                          f"got {cfg.radius_max_mm:g}")
+    return cfg
 
 
 def rain_strength(rainy: np.ndarray, clean: np.ndarray) -> tuple[float, float]:
@@ -61,12 +70,24 @@ def drop_box(positions: np.ndarray, look_at: np.ndarray, radius: float) -> tuple
     return lo, hi
 
 
-def _check_out_dir(out: Path, force: bool) -> None:
-    if out.exists() and not out.is_dir():
-        raise DataError(f"{out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not force:
-        raise DataError(f"{out}: folder exists and is not empty; choose another out= or pass "
-                        "force=true to write into it")
+# Every entry of a simulated scene: force=true replaces all of them (haze/ too when this scene
+# has none), so the folder holds one scene; scene.json, written last, marks a complete one.
+SCENE_ENTRIES = (layout.RAINY_DIR, layout.CLEAN_DIR, layout.DEPTH_DIR, layout.RAIN_DIR, layout.HAZE_DIR,
+                 "cameras.csv", "scene.json")
+SCENE_WRITES = "a simulated scene (images_rain/, images_wo_rain/, depth/, rain/, haze/, cameras.csv, scene.json)"
+# Ranges of the size options (rs-synth's command line checks the same)
+LIMITS = {"rows": (1, 100), "cols": (1, 100), "width": (1, 8192), "height": (1, 8192), "workers": (1, 256),
+          "seed": (0, SEED_MAX)}
+
+
+def check_limits(**values) -> None:
+    """ConfigError naming the first option outside :data:`LIMITS` (None: the preset's)."""
+    for key, value in values.items():
+        if value is None:
+            continue
+        lo, hi = LIMITS[key]
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not lo <= value <= hi:
+            raise ConfigError(f"{key}: must be between {lo} and {hi}, got {value}")
 
 
 @dataclass(frozen=True)
@@ -200,7 +221,10 @@ def generate(out_dir: str | Path, preset: str = "demo", rows: int | None = None,
     ``rain_overrides`` are :class:`~rainyscape.synth.params.RainConfig` fields (density,
     wind_deg, ...). ``progress`` is called as progress(done, total) after each view.
     ``workers``: processes rendering views (None: one for small jobs, else every core).
-    Returns the folder. Refuses a non-empty folder unless ``force``.
+    Returns the folder. Refuses a non-empty folder unless ``force``, which replaces every entry
+    of a scene there (:data:`SCENE_ENTRIES`) as a whole and keeps the rest. The scene is built
+    in a temporary folder beside ``out_dir`` and moved in when complete: a failure (out of
+    memory, an interrupt) leaves ``out_dir`` as it was.
     """
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset '{preset}'; presets are {', '.join(PRESETS)}")
@@ -210,23 +234,29 @@ def generate(out_dir: str | Path, preset: str = "demo", rows: int | None = None,
         raise ConfigError(f"trajectory must be one of {', '.join(TRAJECTORIES)}, got '{trajectory}'")
     p = PRESETS[preset]
     # None means "the preset's"; 0 or less is an error, never silently the preset's
+    check_limits(rows=rows, cols=cols, width=width, height=height, workers=workers, seed=seed)
     rows = p.rows if rows is None else rows
     cols = p.cols if cols is None else cols
     width = p.width if width is None else width
     height = (p.height if width == p.width else width) if height is None else height
-    for key, value in (("rows", rows), ("cols", cols), ("width", width), ("height", height)):
-        if int(value) < 1:
-            raise ConfigError(f"{key} must be at least 1, got {value}")
     rain = rain_config(p.rain, rain_overrides)
     out = Path(out_dir)
-    _check_out_dir(out, force)
-    started = time.perf_counter()
+    with staged_folder(out, SCENE_ENTRIES, force, SCENE_WRITES, last="scene.json") as stage:
+        _simulate(stage, preset, int(rows), int(cols), int(width), int(height), mode, trajectory, int(seed),
+                  rain, workers, progress)
+    return out
 
-    job = Job(preset, int(rows), int(cols), int(width), int(height), mode, trajectory, int(seed), rain, str(out))
+
+def _simulate(out: Path, preset: str, rows: int, cols: int, width: int, height: int, mode: str,
+              trajectory: str, seed: int, rain: RainConfig, workers: int | None, progress) -> None:
+    """Simulate into the (empty, staging) folder ``out``."""
+    p = PRESETS[preset]
+    started = time.perf_counter()
+    job = Job(preset, rows, cols, width, height, mode, trajectory, seed, rain, str(out))
     sim = Simulation(job)
     layout.make_dirs(out)
     n = len(sim)
-    workers = auto_workers(n, width, height) if workers is None else max(1, int(workers))
+    workers = auto_workers(n, width, height) if workers is None else int(workers)
     per_view = _render_all(sim, workers, progress)
     rig = sim.rig
     layout.write_cameras_csv(out / "cameras.csv", rig.positions, rig.rotations, np.full(n, rig.focal_mm),
@@ -260,4 +290,3 @@ def generate(out_dir: str | Path, preset: str = "demo", rows: int | None = None,
         "seconds": round(time.perf_counter() - started, 2),
     }
     layout.write_scene_json(out / "scene.json", info)  # written last: marks a complete scene
-    return out

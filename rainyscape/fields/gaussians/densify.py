@@ -1,10 +1,10 @@
-"""Adaptive density control of 3DGS (Kerbl et al. 2023): clone, split, prune, opacity reset.
+"""Densification strategies: how the set of Gaussians changes during training (gsplat's
+strategy objects, over the parameter surgery of ``ops.py``).
 
-The policy and its defaults are the paper's (and gsplat's ``DefaultStrategy``'s); the
-schedule is the paper's 30k-step one scaled to the run length. Every structural change
-replaces the parameter tensors in place in the field's ``ParameterDict`` and carries the
-Adam moments of surviving Gaussians over (new ones start at zero), so the trainer's
-optimisers stay consistent.
+:class:`DefaultStrategy` is the adaptive density control of 3DGS (Kerbl et al. 2023): clone,
+split, prune, opacity reset. The policy and its defaults are the paper's (and gsplat's
+``DefaultStrategy``'s); the schedule is the paper's 30k-step one scaled to the run length.
+``mcmc.py`` holds the other strategy (3DGS as Markov chain Monte Carlo).
 
 Why not gsplat's ``DefaultStrategy`` itself: gsplat is an optional CUDA extra here, and
 its strategy (checked on 1.5.3) never resets opacities (``step % reset_every == 0 & step
@@ -16,12 +16,12 @@ changed between 1.4 and 1.5.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from torch import Tensor, nn
 
-from rainyscape.fields.gaussians.projection import covariance_factor
+from rainyscape.components import RenderOutput, TrainState
+from rainyscape.fields.gaussians import ops
 
 
 @dataclass
@@ -74,29 +74,50 @@ class DensifySchedule:
                                max(s(reset_every), min_reset_every), max(s(sh_every), min_sh_every))
 
 
-def replace_params(params: nn.ParameterDict, optimizers: dict[str, torch.optim.Optimizer],
-                   new_value: Callable[[str, Tensor], Tensor],
-                   new_state: Callable[[Tensor], Tensor], names: list[str] | None = None) -> None:
-    """Swap each parameter for ``new_value(name, old)`` and map its Adam moments through
-    ``new_state`` (the optimiser keyed by the parameter's name, one param group each)."""
-    for name in names or list(params.keys()):
-        old = params[name]
-        new = nn.Parameter(new_value(name, old.detach()), requires_grad=old.requires_grad)
-        params[name] = new
-        opt = optimizers.get(name)
-        if opt is None:
-            continue
-        state = opt.state.pop(old, None)
-        opt.param_groups[0]["params"] = [new]
-        if state:
-            opt.state[new] = {k: (v if k == "step" else new_state(v)) for k, v in state.items()}
+class Strategy:
+    """How the Gaussians change during training. The field's training callback calls
+    :meth:`observe` after each backward pass and :meth:`refine` after each optimiser step;
+    :meth:`regularisation` adds loss terms of the strategy's own."""
+
+    def observe(self, state: TrainState, output: RenderOutput) -> None: ...
+
+    def refine(self, state: TrainState, params: nn.ParameterDict) -> dict[str, int]:
+        """Change the Gaussians (and their optimisers' state) if this step calls for it;
+        returns the counts of what changed ({} when nothing did)."""
+        return {}
+
+    def regularisation(self, params: nn.ParameterDict) -> dict[str, Tensor]:
+        return {}
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None: ...
 
 
-class Densifier:
-    """Accumulates image-plane gradient statistics and grows / prunes Gaussians."""
+def mean_grad2d_statistic(output: RenderOutput) -> tuple[Tensor, Tensor] | None:
+    """The 3DGS densification statistic of one batch: per camera and Gaussian, the norm of
+    the 2D mean's gradient in the NDC of one full image with a per-image mean loss (C, N),
+    and where each Gaussian was visible (C, N); None when the render carried no gradient."""
+    means2d = output.extras.get("means2d")
+    if means2d is None or means2d.grad is None:
+        return None
+    (width, height), (w, h) = output.extras["image_size"], output.extras["window_size"]
+    # Pixel gradients of a batch of C windows with a mean loss -> the 3DGS statistic.
+    area = means2d.shape[0] * w * h / (width * height)
+    scale = torch.tensor([width / 2 * area, height / 2 * area], device=means2d.device)
+    visible = (output.extras["radii"] > 0).all(-1)
+    return (means2d.grad * scale).norm(dim=-1) * visible, visible
 
-    def __init__(self, grow_grad2d: float, grow_scale3d: float, prune_opacity: float,
+
+class DefaultStrategy(Strategy):
+    """3DGS's adaptive density control: clone small and split large Gaussians whose mean
+    image-plane gradient is high, prune transparent (and, after the first opacity reset,
+    large) ones, reset opacities periodically; at most ``max_gaussians`` (0: no cap)."""
+
+    def __init__(self, schedule, grow_grad2d: float, grow_scale3d: float, prune_opacity: float,
                  prune_scale3d: float, max_gaussians: int, scene_extent: float):
+        self.schedule = schedule  # max_iters -> DensifySchedule
         self.grow_grad2d = grow_grad2d
         self.grow_scale3d = grow_scale3d
         self.prune_opacity = prune_opacity
@@ -111,21 +132,39 @@ class Densifier:
             self.grad2d = torch.zeros(n, device=device)
             self.count = torch.zeros(n, device=device)
 
-    @torch.no_grad()
-    def accumulate(self, means2d_grad: Tensor, radii: Tensor, scale_xy: Tensor) -> None:
-        """Add one batch: ``means2d_grad`` (C, N, 2) in window pixels, ``radii`` (C, N, 2).
+    def observe(self, state: TrainState, output: RenderOutput) -> None:
+        if state.step + 1 >= self.schedule(state.max_iters).stop:
+            return
+        stat = mean_grad2d_statistic(output)
+        if stat is not None:
+            self.accumulate(*stat)
 
-        ``scale_xy`` turns pixel gradients into the 3DGS statistic (normalised device
-        coordinates of a full-image render with a per-image mean loss)."""
-        self._ensure(means2d_grad.shape[1], means2d_grad.device)
-        visible = (radii > 0).all(-1)  # (C, N)
-        norms = (means2d_grad * scale_xy).norm(dim=-1) * visible
+    @torch.no_grad()
+    def accumulate(self, norms: Tensor, visible: Tensor) -> None:
+        """Add one batch's statistic (C, N) and visibility (C, N)."""
+        self._ensure(norms.shape[1], norms.device)
         self.grad2d += norms.sum(0).to(self.grad2d)
         self.count += visible.sum(0).to(self.count)
 
     def reset_stats(self) -> None:
         """Start a new accumulation window (sized at the next :meth:`accumulate`)."""
         self.grad2d = self.count = None
+
+    def refine(self, state: TrainState, params: nn.ParameterDict) -> dict[str, int]:
+        sched = self.schedule(state.max_iters)
+        it = state.step + 1
+        if it >= sched.stop:
+            return {}
+        events: dict[str, int] = {}
+        if sched.refines_at(it):
+            n_clone, n_split = self.grow(params, state.optimizers)
+            n_prune = self.prune(params, state.optimizers, prune_large=it > sched.reset_every)
+            self.reset_stats()
+            events.update(refinements=1, cloned=n_clone, split=n_split, pruned=n_prune)
+        if sched.resets_at(it):
+            self.reset_opacity(params, state.optimizers, 2 * self.prune_opacity)
+            events["opacity_resets"] = 1
+        return events
 
     @torch.no_grad()
     def grow(self, params: nn.ParameterDict, optimizers: dict) -> tuple[int, int]:
@@ -150,29 +189,10 @@ class Densifier:
         n_clone, n_split = int(clone.sum()), int(split.sum())
         if n_clone + n_split == 0:
             return 0, 0
-        children = self._split_children(params, split)
-        keep = ~split
-
-        def value(name: str, p: Tensor) -> Tensor:
-            return torch.cat([p[keep], p[clone], children.get(name, p[split].repeat_interleave(2, 0))])
-
-        def state(v: Tensor) -> Tensor:
-            fresh = torch.zeros((n_clone + 2 * n_split, *v.shape[1:]), device=v.device, dtype=v.dtype)
-            return torch.cat([v[keep], fresh])
-
-        replace_params(params, optimizers, value, state)
+        children = ops.split_samples(params, split.nonzero().squeeze(1))
+        new = {name: torch.cat([p[clone], children[name]]) for name, p in params.items()}
+        ops.append(params, optimizers, ~split, new)
         return n_clone, n_split
-
-    @staticmethod
-    def _split_children(params: nn.ParameterDict, split: Tensor) -> dict[str, Tensor]:
-        """Two samples per split Gaussian: positions drawn from it, scales / 1.6."""
-        scales = params["scales"][split].exp()
-        factor = covariance_factor(params["quats"][split], scales)  # (S, 3, 3)
-        noise = torch.randn(len(scales), 2, 3, device=scales.device, dtype=scales.dtype)
-        offsets = torch.einsum("sij,skj->ski", factor, noise)
-        means = (params["means"][split][:, None] + offsets).reshape(-1, 3)
-        return {"means": means,
-                "scales": torch.log(scales / 1.6).repeat_interleave(2, 0)}
 
     @torch.no_grad()
     def prune(self, params: nn.ParameterDict, optimizers: dict, prune_large: bool) -> int:
@@ -185,16 +205,13 @@ class Densifier:
             drop[torch.argmax(params["opacities"])] = False
         n_drop = int(drop.sum())
         if n_drop:
-            keep = ~drop
-            replace_params(params, optimizers, lambda name, p: p[keep], lambda v: v[keep])
+            ops.remove(params, optimizers, drop)
         return n_drop
 
     @torch.no_grad()
     def reset_opacity(self, params: nn.ParameterDict, optimizers: dict, value: float) -> None:
         """Clamp every opacity to at most ``value``; its Adam moments restart from zero."""
-        cap = float(torch.logit(torch.tensor(value)))
-        replace_params(params, optimizers, lambda name, p: p.clamp(max=cap), torch.zeros_like,
-                       names=["opacities"])
+        ops.cap_opacity(params, optimizers, value)
 
     def state_dict(self) -> dict:
         return {"grad2d": self.grad2d, "count": self.count}

@@ -23,7 +23,8 @@ from rainyscape.cameras import Cameras, Window, pixel_rays
 from rainyscape.components import Callback, Field, ParamGroup, RenderOutput, TrainState
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
-from rainyscape.fields.gaussians.densify import Densifier, DensifySchedule
+from rainyscape.fields.gaussians.densify import DefaultStrategy, DensifySchedule, Strategy
+from rainyscape.fields.gaussians.mcmc import MCMCStrategy
 from rainyscape.fields.gaussians.ply import write_ply
 from rainyscape.fields.gaussians.rasterize import BACKENDS, rasterize
 from rainyscape.fields.gaussians.sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh0
@@ -48,6 +49,8 @@ def growth_cap(max_gaussians: int, pixels_per_gaussian: int, train_pixels: int) 
 
 
 InitMode = Literal["auto", "points", "frustum", "random"]
+StrategyName = Literal["default", "mcmc"]
+MCMC_DEFAULT_CAP = 1_000_000  # gsplat's cap_max, for an MCMC run without a Gaussian cap
 
 
 def init_mode(option: str, scene: SceneData) -> str:
@@ -81,6 +84,39 @@ def frustum_points(scene: SceneData, count: int, generator: torch.Generator) -> 
     return points, colors
 
 
+def depth_guided_points(scene: SceneData, points: Tensor, count: int, generator: torch.Generator,
+                        neighbours: int = 3) -> tuple[Tensor, Tensor]:
+    """``count`` points on random pixels of random training views, each at the z-depth its
+    nearest sparse points (in the image) have there (inverse-distance weighted), coloured by
+    the pixel: a dense start where a sparse SfM model is thin (untextured walls, road), with
+    depths from what the views themselves triangulated. Views that see fewer than
+    ``neighbours`` points get none."""
+    train = torch.tensor(scene.train_indices or list(range(scene.num_images)))
+    per_view = torch.bincount(torch.randint(len(train), (count,), generator=generator), minlength=len(train))
+    uv_all, z_all = scene.cameras[train].project(points.double().to(scene.cameras.c2w.dtype))
+    out_p, out_c = [], []
+    for i, v in enumerate(train.tolist()):
+        n = int(per_view[i])
+        uv, z = uv_all[i], z_all[i]
+        seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < scene.width) & (uv[:, 1] >= 0) & (uv[:, 1] < scene.height)
+        if n == 0 or int(seen.sum()) < neighbours:
+            continue
+        uv, z = uv[seen].float(), z[seen].float()
+        xs = torch.randint(scene.width, (n,), generator=generator)
+        ys = torch.randint(scene.height, (n,), generator=generator)
+        pix = torch.stack([xs, ys], -1).float() + 0.5
+        dist, idx = torch.cdist(pix, uv).topk(neighbours, largest=False)
+        weight = 1.0 / dist.clamp_min(0.5)
+        depth = (z[idx] * weight).sum(-1) / weight.sum(-1)
+        rays = pixel_rays(scene.cameras[[v]], xs[None], ys[None])
+        t = depth[None] / rays.z_scale  # z-depth -> distance along the ray
+        out_p.append((rays.origins + rays.directions * t[..., None])[0].float())
+        out_c.append(scene.images[v, ys, xs].float() / 255.0)
+    if not out_p:
+        return torch.zeros(0, 3), torch.zeros(0, 3)
+    return torch.cat(out_p), torch.cat(out_c)
+
+
 def nearest_neighbour_scale(points: Tensor, k: int = 3) -> Tensor:
     """Mean distance from each point to its k nearest others (3DGS's initial scale)."""
     from scipy.spatial import cKDTree
@@ -105,6 +141,9 @@ class GaussianField(Field):
         # auto: the scene's points if it has them, else frustum on forward-facing captures, else random
         init: InitMode = "auto"
         init_points: int = bounded(100_000, 0)  # at most this many of the scene's sparse points (random subset)
+        # with sparse points: this many more on training pixels at the depth of their nearest
+        # sparse points in the image (a dense start where SfM is thin; depth_guided_points)
+        init_fill: int = bounded(0, 0, 10_000_000)
         random_points: int = bounded(100_000, 0)  # random Gaussians (gsplat: 100k) ...
         random_extent: float = bounded(3.0, 0.0)  # ... in a cube of this x the scene extent about the cameras' centroid (0: the scene box)
         init_opacity: float = bounded(0.1, hi=0.99, above=0.0)
@@ -132,6 +171,14 @@ class GaussianField(Field):
         reset_every: int = bounded(3000, 1)  # (a reset needs reset_every steps of densification after it)
         min_reset_every: int = bounded(1000, 0)  # opacity resets at least this many steps apart, whatever the run
         min_sh_degree_every: int = bounded(0, 0)  # one more SH degree at most every this many steps
+        # default: 3DGS's clone / split / prune; mcmc: relocation and noise (3DGS-MCMC), count
+        # capped from the start by max_gaussians / pixels_per_gaussian (else 1M)
+        strategy: StrategyName = "default"
+        mcmc_grow_rate: float = bounded(0.05, 0.0)  # mcmc: share more Gaussians per refinement, up to the cap
+        mcmc_noise_lr: float = bounded(5e5, 0.0)  # mcmc: position noise, times the means' lr
+        mcmc_min_opacity: float = bounded(0.005, 0.0, 1.0)  # mcmc: dead below this: relocated
+        opacity_reg: float = bounded(0.01, 0.0)  # mcmc: L1 on opacities
+        scale_reg: float = bounded(0.01, 0.0)  # mcmc: L1 on scales
         grow_grad2d: float = bounded(2e-4, 0.0)
         grow_scale3d: float = bounded(0.01, 0.0)
         prune_opacity: float = bounded(0.005, 0.0, 1.0)
@@ -151,6 +198,8 @@ class GaussianField(Field):
             raise ConfigError("field.background needs three values (r, g, b)")
         if c.init not in get_args(InitMode):
             raise ConfigError(f"field.init must be one of {', '.join(get_args(InitMode))}, got '{c.init}'")
+        if c.strategy not in get_args(StrategyName):
+            raise ConfigError(f"field.strategy must be one of {', '.join(get_args(StrategyName))}, got '{c.strategy}'")
         self.width, self.height = scene.width, scene.height
         train = scene.train_indices or list(range(scene.num_images))
         self.max_gaussians = growth_cap(c.max_gaussians, c.pixels_per_gaussian,
@@ -164,6 +213,7 @@ class GaussianField(Field):
         # Cumulative counts of the densifier's changes (logged through stats(); checkpointed
         # with the training callback).
         self.events = {"refinements": 0, "cloned": 0, "split": 0, "pruned": 0, "opacity_resets": 0}
+        self.strategy = self._make_strategy()
 
     # ------------------------------------------------------------------ set-up
 
@@ -180,6 +230,10 @@ class GaussianField(Field):
             if len(points) > keep:
                 pick = torch.randperm(len(points), generator=gen)[:keep]
                 points, colors = points[pick], colors[pick]
+            fill = int(min(c.init_fill, max(cap - len(points), 0)))
+            if fill > 0:
+                more, more_colors = depth_guided_points(scene, points, fill, gen)
+                points, colors = torch.cat([points, more]), torch.cat([colors, more_colors])
         elif init == "frustum":
             points, colors = frustum_points(scene, max(1, int(min(c.random_points, cap))), gen)
         else:
@@ -230,7 +284,19 @@ class GaussianField(Field):
             group.params = [self.params[name]]
 
     def callbacks(self) -> list[Callback]:
-        return [GaussianTraining(self)]
+        return [GaussianTraining(self, self.strategy)]
+
+    def _make_strategy(self) -> Strategy:
+        c = self.config
+        if c.strategy == "mcmc":
+            return MCMCStrategy(self.schedule, self.max_gaussians or MCMC_DEFAULT_CAP, c.mcmc_min_opacity,
+                                c.mcmc_grow_rate, c.mcmc_noise_lr, c.opacity_reg, c.scale_reg)
+        return DefaultStrategy(self.schedule, c.grow_grad2d, c.grow_scale3d, c.prune_opacity,
+                               c.prune_scale3d, self.max_gaussians, self.extent)
+
+    def extra_losses(self, output: RenderOutput, target: Tensor) -> dict[str, Tensor]:
+        """The strategy's regularisers (MCMC: L1 on opacities and scales)."""
+        return self.strategy.regularisation(self.params)
 
     def schedule(self, max_iters: int) -> DensifySchedule:
         c = self.config
@@ -287,13 +353,11 @@ class GaussianField(Field):
 
 
 class GaussianTraining(Callback):
-    """The 3DGS schedule: SH degree, densification, opacity reset."""
+    """The 3DGS schedule: SH degree, and the densification strategy's changes."""
 
-    def __init__(self, field: GaussianField):
+    def __init__(self, field: GaussianField, strategy: Strategy):
         self.field = field
-        c = field.config
-        self.densifier = Densifier(c.grow_grad2d, c.grow_scale3d, c.prune_opacity,
-                                   c.prune_scale3d, field.max_gaussians, field.extent)
+        self.strategy = strategy
         self.last_stats: dict[str, int] = {}
 
     def before_step(self, state: TrainState) -> None:
@@ -301,45 +365,20 @@ class GaussianTraining(Callback):
         f.active_sh_degree.fill_(f.schedule(state.max_iters).sh_degree_at(state.step, f.config.sh_degree))
 
     def after_backward(self, state: TrainState, output: RenderOutput) -> None:
-        sched = self.field.schedule(state.max_iters)
-        means2d = output.extras.get("means2d")
-        if state.step + 1 >= sched.stop or means2d is None or means2d.grad is None:
-            return
-        (width, height), (w, h) = output.extras["image_size"], output.extras["window_size"]
-        # Pixel gradients of a batch of C windows with a mean loss -> the 3DGS statistic:
-        # NDC of one full image whose loss is a mean over all its pixels.
-        c = means2d.shape[0]
-        area = c * w * h / (width * height)
-        scale = torch.tensor([width / 2 * area, height / 2 * area], device=means2d.device)
-        self.densifier.accumulate(means2d.grad, output.extras["radii"], scale)
+        self.strategy.observe(state, output)
 
     def after_step(self, state: TrainState) -> None:
-        sched = self.field.schedule(state.max_iters)
-        it = state.step + 1
-        if it >= sched.stop:
+        events = self.strategy.refine(state, self.field.params)
+        if not events:
             return
-        params, opts = self.field.params, state.optimizers
-        events = self.field.events
-        changed = False
-        if sched.refines_at(it):
-            n_clone, n_split = self.densifier.grow(params, opts)
-            n_prune = self.densifier.prune(params, opts, prune_large=it > sched.reset_every)
-            self.densifier.reset_stats()
-            self.last_stats = {"cloned": n_clone, "split": n_split, "pruned": n_prune,
-                               "gaussians": self.field.num_gaussians}
-            for key, n in (("refinements", 1), ("cloned", n_clone), ("split", n_split), ("pruned", n_prune)):
-                events[key] += n
-            changed = True
-        if sched.resets_at(it):
-            self.densifier.reset_opacity(params, opts, 2 * self.field.config.prune_opacity)
-            events["opacity_resets"] += 1
-            changed = True
-        if changed:
-            self.field.sync_param_groups()
+        for key, n in events.items():
+            self.field.events[key] = self.field.events.get(key, 0) + n
+        self.last_stats = {**events, "gaussians": self.field.num_gaussians}
+        self.field.sync_param_groups()
 
     def state_dict(self) -> dict:
-        return {**self.densifier.state_dict(), "events": dict(self.field.events)}
+        return {**self.strategy.state_dict(), "events": dict(self.field.events)}
 
     def load_state_dict(self, state: dict) -> None:
-        self.densifier.load_state_dict(state)
+        self.strategy.load_state_dict(state)
         self.field.events.update(state.get("events", {}))

@@ -97,20 +97,6 @@ class Camera:
         return self.rot[:, 1] / self.fy
 
 
-def camera_rays(cameras: Cameras, index: int, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rays of every pixel for each sub-pixel offset: origin (3,), unit dirs (S, H*W, 3), z_scale.
-
-    Same convention as :func:`rainyscape.cameras.pixel_rays`: pixel (i, j) centre at (j+.5, i+.5).
-    """
-    cam = Camera.of(cameras, index)
-    jj, ii = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
-    xs = jj.ravel()[None] + offsets[:, :1]
-    ys = ii.ravel()[None] + offsets[:, 1:]
-    d = cam.directions(xs, ys)
-    norm = np.linalg.norm(d, axis=-1, keepdims=True)
-    return cam.origin, d / norm, 1.0 / norm[..., 0]
-
-
 @dataclass
 class Shaded:
     rgb: np.ndarray  # (M, 3) radiance (not clipped)

@@ -2,7 +2,7 @@
 peak memory is its own.
 
 The parent writes ``cell.json`` (method, overrides, output folder) and runs
-``python -m rainyscape.bench.cell CELL.json RESULT.json``; the child trains and writes
+``python -m rainyscape.comparison.cell CELL.json RESULT.json``; the child trains and writes
 ``result.json``. Console output of the child goes to ``bench.log`` in the cell's folder.
 """
 
@@ -15,13 +15,14 @@ import sys
 import time
 from pathlib import Path
 
-from rainyscape.bench.matrix import Cell
+from rainyscape.comparison.matrix import Cell
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.errors import RainyScapeError
 
 
-def find_run(output_dir: Path) -> Path | None:
+def find_run(output_dir: Path) -> RunFolder | None:
     """The newest run folder under a cell's output folder."""
-    runs = sorted(p.parent for p in output_dir.glob("*/*/*/config.yml"))
+    runs = RunFolder.under(output_dir)
     return runs[-1] if runs else None
 
 
@@ -38,19 +39,16 @@ def peak_memory_mib() -> dict:
     return out
 
 
-def training_seconds(run_dir: Path) -> float | None:
-    """Training time from the log (the trainer stamps seconds since its start; a resumed run
-    adds its segments)."""
-    from rainyscape.eval.report import read_log
-
-    train, _ = read_log(run_dir / "log.jsonl")
+def training_seconds(folder: RunFolder) -> float | None:
+    """Training time from the log (the trainer stamps its step records with seconds since its
+    start; a resumed run adds its segments)."""
+    times = [float(rec["time"]) for rec in folder.log_records() if "time" in rec]
     total, last = 0.0, 0.0
-    for rec in train:
-        t = float(rec.get("time", 0.0))
+    for t in times:
         if t < last:  # a resume restarted the clock
             total += last
         last = t
-    return total + last if train else None
+    return total + last if times else None
 
 
 def run_cell_here(spec: dict) -> dict:
@@ -62,20 +60,15 @@ def run_cell_here(spec: dict) -> dict:
     cfg = method_config(spec["method"], spec["overrides"] + [f"trainer.output_dir={output_dir}"])
     existing = find_run(output_dir)
     started = time.perf_counter()
-    status = {}
-    if existing is not None:
-        status = json.loads((existing / "status.json").read_text()) if (existing / "status.json").is_file() else {}
-    if existing is not None and status.get("state") == "finished" and (existing / "metrics.json").is_file():
-        run_dir, resumed = existing, "read back"
+    if existing is not None and existing.finished(cfg.trainer.max_iters):
+        folder, resumed = existing, "read back"
     else:
-        from rainyscape.engine.checkpoint import latest_checkpoint
-
-        resume = existing if existing is not None and latest_checkpoint(existing / "checkpoints") else None
-        run_dir = train_and_evaluate(cfg, resume).run_dir
+        resume = existing.path if existing is not None and existing.resumable(cfg.trainer.max_iters) else None
+        folder = RunFolder(train_and_evaluate(cfg, resume).run_dir)
         resumed = "resumed" if resume is not None else "trained"
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    return {"status": "finished", "how": resumed, "run_dir": str(run_dir),
-            "wall_s": time.perf_counter() - started, "train_s": training_seconds(run_dir),
+    metrics = folder.metrics()
+    return {"status": "finished", "how": resumed, "run_dir": str(folder.path),
+            "wall_s": time.perf_counter() - started, "train_s": training_seconds(folder),
             "iters": cfg.trainer.max_iters, "summary": metrics.get("summary", {}),
             "postprocess": metrics.get("postprocess", []), "lpips": metrics.get("lpips", {}),
             "views": metrics.get("views", {}), **peak_memory_mib()}
@@ -93,7 +86,7 @@ def run_cell_subprocess(cell: Cell, output_dir: Path, device: str, threads: int 
     result_path.unlink(missing_ok=True)
     env = dict(os.environ, OMP_NUM_THREADS=str(threads)) if threads > 0 else None
     with open(output_dir / "bench.log", "a") as log:
-        done = subprocess.run([sys.executable, "-m", "rainyscape.bench.cell", str(spec_path), str(result_path)],
+        done = subprocess.run([sys.executable, "-m", "rainyscape.comparison.cell", str(spec_path), str(result_path)],
                               stdout=log, stderr=subprocess.STDOUT, env=env)
     if done.returncode == 0 and result_path.is_file():
         return json.loads(result_path.read_text())
@@ -102,7 +95,7 @@ def run_cell_subprocess(cell: Cell, output_dir: Path, device: str, threads: int 
 
 
 def main(spec_path: str, result_path: str) -> int:
-    """Subprocess entry: ``python -m rainyscape.bench.cell CELL.json RESULT.json``."""
+    """Subprocess entry: ``python -m rainyscape.comparison.cell CELL.json RESULT.json``."""
     spec = json.loads(Path(spec_path).read_text())
     try:
         result = run_cell_here(spec)

@@ -32,9 +32,12 @@ def load_results(path: Path) -> dict:
     if not path.is_file():
         return {"cells": {}}
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
         raise ConfigError(f"{path}: results file is not valid JSON; move it away to start afresh") from None
+    if not isinstance(data, dict) or not isinstance(data.get("cells"), dict):
+        raise ConfigError(f"{path}: not an rs-bench results file (no 'cells'); move it away to start afresh")
+    return data
 
 
 def save_results(path: Path, results: dict) -> None:

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from rainyscape.engine.pipeline import Pipeline
+from rainyscape.engine.run_folder import RunFolder
 from rainyscape.eval.camera_path import path_cameras
 from rainyscape.eval.images import depth_map, error_map, save_png, strip_panels, side_by_side, to_uint8
 from rainyscape.eval.views import progress, render_cameras, view_images
@@ -110,7 +111,7 @@ def render_path_video(pipeline: Pipeline, path: Path, kind: str = "views", frame
 
 
 def render_run(pipeline: Pipeline, run_dir: Path, options: RenderOptions) -> dict:
-    out_dir = Path(run_dir) / "renders"
+    out_dir = RunFolder(run_dir).renders
     counts = render_views(pipeline, out_dir, select_views(pipeline, options.views))
     result: dict = {"folder": str(out_dir), "files": counts}
     if options.video:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from rainyscape.config import PhaseConfig, PipelineConfig
+from rainyscape.config import PhaseConfig, PipelineConfig, run_length
 from rainyscape.engine.phases import PhaseSchedule
 from rainyscape.errors import ConfigError
 
@@ -38,10 +38,6 @@ class Budget:
     phases: tuple[PhaseBudget, ...]
     width: int = 0  # the image size whole-view phases were counted at
     height: int = 0
-
-    @property
-    def total_pixels(self) -> float:
-        return self.steps * self.pixels_per_step
 
     def short(self) -> str:
         """``1500 × 1024``: steps × mean pixels per step."""
@@ -72,11 +68,11 @@ def phase_pixels(phase: PhaseConfig, width: int, height: int) -> int:
     return phase.patches * (width * height if phase.patch_size == 0 else phase.patch_size ** 2)
 
 
-def cell_budget(cfg: PipelineConfig, width: int, height: int) -> Budget:
-    """The budget of a typed config on images of ``width`` x ``height`` pixels (as the
-    dataparser delivers them, after any downscale). A run stopped early by
-    ``trainer.stop_at`` counts the steps it runs."""
-    max_iters = cfg.trainer.max_iters
+def cell_budget(cfg: PipelineConfig, width: int, height: int, train_views: int) -> Budget:
+    """The budget of a typed config on ``train_views`` training images of ``width`` x
+    ``height`` pixels (as the dataparser delivers them, after any downscale). A run stopped
+    early by ``trainer.stop_at`` counts the steps it runs."""
+    max_iters = run_length(cfg.trainer, train_views)
     steps = min(cfg.trainer.stop_at, max_iters) if cfg.trainer.stop_at else max_iters
     schedule = PhaseSchedule.of(cfg.phases, max_iters)
     phases, start = [], 0

@@ -11,6 +11,9 @@ light, medium, heavy, slanted by wind, and two directions at once.
   ``jobs=2 threads=1`` (the measurement behind it: docs/evaluation.md, "Sizing the cpu set").
 - ``paper``: the paper's array (5 x 10 views) at 512 px and its step counts (18k NeRF steps,
   30k for 3DGS): a GPU run.
+- ``real``: real photographs with the simulator's rain in their own cameras (comparison/captures.py):
+  every capture of the captures folder at about 240 px, at light, medium and heavy strength; the
+  photos are the ground truth.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ class SceneSet:
     cols: int
     iters: dict[str, int] = field(default_factory=dict)  # field family -> trainer.max_iters
     description: str = ""
+    captures: bool = False  # scenes made from real captures (comparison/captures.py), not presets
 
 
 SCENE_SETS: dict[str, SceneSet] = {s.name: s for s in [
@@ -44,6 +48,10 @@ SCENE_SETS: dict[str, SceneSet] = {s.name: s for s in [
              iters={"grid": 18000, "gaussians": 30000},
              description="the same presets at the paper's size (5 x 10 views, 512 px) and step counts "
                          "(18k for NeRF, 30k for 3DGS): a GPU run"),
+    SceneSet("real", (), width=0, height=0, rows=0, cols=0,
+             iters={"grid": 1500, "gaussians": 1500}, captures=True,
+             description="real captures (captures=FOLDER) at about 240 px with simulated rain in their own "
+                         "cameras, light / medium / heavy; the photos are the ground truth"),
 ]}
 
 

@@ -5,16 +5,16 @@ keys), every cell's budget, and the budget check."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
-from rainyscape.bench.budget import Budget, Mismatch, cell_budget, check_budgets
-from rainyscape.bench.matrix import Cell, build_cells, cell_config, validate_cells
-from rainyscape.bench.options import BenchOptions
-from rainyscape.bench.scenes import ScenePlan, plan_scene, planned_image_size
-from rainyscape.bench.sets import scene_set
+from rainyscape.comparison.budget import Budget, Mismatch, cell_budget, check_budgets
+from rainyscape.comparison.matrix import SIMULATED_FORMAT, Cell, build_cells, cell_config, validate_cells
+from rainyscape.comparison.options import BenchOptions
+from rainyscape.comparison.scenes import ScenePlan, plan_scene
+from rainyscape.comparison.sets import scene_set
 from rainyscape.config.overrides import uses_cuda
-from rainyscape.config.schema import PROFILES
+from rainyscape.config.schema import check_range
 from rainyscape.errors import ConfigError
 
 PLAIN_FIELDS = ("nerf", "3dgs")  # ceiling=auto: the fields without a rain model
@@ -77,76 +77,114 @@ def ceiling_methods(option: str, methods: list[str]) -> list[str]:
     return chosen
 
 
+def fixed_length(steps: int) -> list[str]:
+    """Overrides that make a run exactly ``steps`` long (whatever its steps-per-view rule)."""
+    return [f"trainer.max_iters={steps}", "trainer.iters_per_view=0"]
+
+
 def family_iters(methods: list[str], overrides: list[str], iters: dict[str, int]) -> dict[str, list[str]]:
     """Per method, the ``trainer.max_iters`` override a scene set gives its field family."""
     out = {}
     for m in methods:
         family = cell_config(Cell(m, "", "", m, list(overrides))).field.name
         if family in iters:
-            out[m] = [f"trainer.max_iters={iters[family]}"]
+            out[m] = fixed_length(iters[family])
     return out
 
 
-def image_size(plan: ScenePlan, cfg) -> tuple[int, int]:
-    """(width, height) of a scene's images as the cells' dataparser delivers them (after its
-    downscale); a folder without ``scene.json`` is parsed to find out."""
-    size = planned_image_size(plan)
-    if size is None:
-        from rainyscape.engine.pipeline import load_scene
+def scene_shape(plan: ScenePlan, cfg) -> tuple[int, int, int]:
+    """(width, height, training views) of a scene as the cells' dataparser delivers it (after
+    its downscale and held-out split); a folder is parsed to find out, a preset is counted."""
+    from rainyscape.scene import split_indices
 
-        scene = load_scene(cfg, Path(plan.folder))
-        return scene.width, scene.height
-    factor = max(1, int(getattr(cfg.dataparser.options, "downscale", 1) or 1))
-    return size[0] // factor, size[1] // factor
+    options = cfg.dataparser.options
+    if plan.preset:
+        factor = max(1, int(getattr(options, "downscale", 1) or 1))
+        train, _ = split_indices(plan.rows * plan.cols, getattr(options, "holdout_every", 8))
+        return plan.width // factor, plan.height // factor, len(train)
+    from rainyscape.engine.scene_loading import load_scene
+
+    scene = load_scene(cfg, Path(plan.folder))
+    if scene.clean_images is None:  # every cell would score n/a, and say nothing
+        raise ConfigError(
+            f"{plan.folder}: the {scene.metadata.get('dataparser', cfg.dataparser.name)} parser finds no "
+            "clean images there, and rs-bench scores every cell against them; name their folder with "
+            "dataparser.clean=FOLDER, or put them beside the rainy images as a '_wo_rain' sibling "
+            "(images_rain/ -> images_wo_rain/)")
+    return scene.width, scene.height, len(scene.train_indices)
 
 
 def plan_budgets(cells: list[Cell], plans: dict[str, ScenePlan]) -> dict[str, Budget]:
     """Every cell's training budget from its typed config, before anything is simulated or trained."""
-    sizes: dict[str, tuple[int, int]] = {}
+    shapes: dict[str, tuple[int, int, int]] = {}
     budgets = {}
     for cell in cells:
         cfg = cell_config(cell)
-        if cell.scene not in sizes:
-            sizes[cell.scene] = image_size(plans[cell.scene], cfg)
-        budgets[cell.key] = cell_budget(cfg, *sizes[cell.scene])
+        if cell.scene not in shapes:
+            shapes[cell.scene] = scene_shape(plans[cell.scene], cfg)
+        budgets[cell.key] = cell_budget(cfg, *shapes[cell.scene])
     return budgets
+
+
+def check_options(opts: BenchOptions) -> None:
+    """Every option's range or choices (the command line checks them too; this covers options
+    built in code), and that the device is there: a cell on a missing device would fail only
+    after the scenes were simulated."""
+    for f in fields(BenchOptions):
+        check_range(getattr(opts, f.name), f.metadata, f.name)
+    if uses_cuda(opts.device):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device={opts.device}: CUDA is not available here (device=cpu or auto)")
 
 
 def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
     """Everything about a benchmark that is known before it runs; raises ConfigError on a bad
     option, method or override, and on unequal budgets within a field (unless
     ``opts.allow_unequal``)."""
+    check_options(opts)
     methods = [m.strip() for m in opts.methods.split(",") if m.strip()]
     if not methods:
         raise ConfigError("rs-bench: methods= lists no method")
-    if opts.iters < 0:
-        raise ConfigError(f"rs-bench: iters must be >= 0, got {opts.iters}")
-    for key in ("scene_width", "scene_height", "scene_rows", "scene_cols"):
-        if getattr(opts, key) < 0:
-            raise ConfigError(f"rs-bench: {key} must be >= 0, got {getattr(opts, key)}")
     sset = scene_set(opts.scenes)
-    if opts.profile not in ("auto", *PROFILES):
-        raise ConfigError(f"rs-bench: profile must be auto, {' or '.join(PROFILES)}, got '{opts.profile}'")
     # The recipe is fixed here, for every cell alike, so that the budgets checked below are the
     # ones the cells train with (and a cell's fingerprint says which recipe it ran).
     profile = opts.profile if opts.profile != "auto" else "gpu" if uses_cuda(opts.device) else "cpu"
-    # A table measures every view: no time limit on the cells' end-of-run evaluation.
-    base = [f"profile={profile}", "trainer.final_eval_views=0", "trainer.final_eval_share=0"]
-    base += [f"trainer.max_iters={opts.iters}"] if opts.iters else []
+    # A table measures every view: the cells evaluate every view at the end of their run.
+    base = [f"profile={profile}", "trainer.final_eval_views=0"]
+    base += fixed_length(opts.iters) if opts.iters else []
+    base += [f"dataparser={opts.dataparser}"] if opts.dataparser != "auto" else []
     every = list(dict.fromkeys(methods + ([opts.ablation_method] if opts.ablation else [])))
     overrides, own = split_method_overrides(overrides, every)
-    # Every method and override must be valid before any scene is simulated or cell trained.
-    validate_cells(build_cells(methods, [("", "")], base + overrides,
-                               ("", "") if opts.ablation else None, opts.ablation_method, own))
-    per_method = family_iters(every, base + overrides, sset.iters) if sset and not opts.iters else {}
+    # Every method and override must be valid before any scene is simulated or cell trained;
+    # the dataparser's options are checked with each scene's cells (plan_budgets), as only a
+    # scene tells which parser reads it.
+    generic = [o for o in base + overrides if not o.startswith("dataparser")]
+    validate_cells(build_cells(methods, [("", "")], generic, ("", "") if opts.ablation else None,
+                               opts.ablation_method, {m: [o for o in v if not o.startswith("dataparser")]
+                                                      for m, v in own.items()}))
+    per_method = family_iters(every, generic, sset.iters) if sset and not opts.iters else {}
     per_method = {m: per_method.get(m, []) + own.get(m, []) for m in every}
     size = dict(width=opts.scene_width or (sset.width if sset else 0),
                 height=opts.scene_height or (sset.height if sset and not opts.scene_width else 0),
                 rows=opts.scene_rows or (sset.rows if sset else 0), cols=opts.scene_cols or (sset.cols if sset else 0))
     specs = list(sset.presets) if sset else [s.strip() for s in opts.scenes.split(",") if s.strip()]
-    if not specs:
-        raise ConfigError("rs-bench: scenes= lists no scene")
-    scenes = list({p.label: p for p in (plan_scene(s, **size) for s in specs)}.values())
+    if sset and sset.captures:  # made (once, cached) now: their sizes come from the folders
+        from rainyscape.comparison.captures import real_scenes
+
+        planned = [ScenePlan(label, folder=str(folder))
+                   for label, folder in real_scenes(opts.captures, Path(opts.out) / "scenes")]
+    else:
+        if not specs:
+            raise ConfigError("rs-bench: scenes= lists no scene")
+        planned = [plan_scene(s, **size) for s in specs]
+    scenes = list({p.label: p for p in planned}.values())
+    simulated = [p.label for p in scenes if not p.folder]
+    if opts.dataparser not in ("auto", SIMULATED_FORMAT) and simulated:
+        raise ConfigError(f"rs-bench: dataparser={opts.dataparser}: {', '.join(simulated)} "
+                          f"{'is' if len(simulated) == 1 else 'are'} simulated in the {SIMULATED_FORMAT} "
+                          "layout; dataparser= names the parser of scene folders")
     plan = BenchPlan(methods, scenes, plan_scene(opts.ablation, **size) if opts.ablation else None,
                      opts.ablation_method, base + overrides, per_method, sset.name if sset else None,
                      ceiling_methods(opts.ceiling, methods))

@@ -7,12 +7,11 @@ then *resolved* (:func:`resolve_scene`) to a folder."""
 
 from __future__ import annotations
 
-import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from rainyscape.errors import ConfigError
+from rainyscape.errors import ConfigError, DataError
 
 
 @dataclass(frozen=True)
@@ -46,19 +45,13 @@ def plan_scene(spec: str, width: int = 0, height: int = 0, rows: int = 0, cols: 
                      embedded=embedded)
 
 
-def planned_image_size(plan: ScenePlan) -> tuple[int, int] | None:
-    """(width, height) of the scene's images before any downscale, when known without
-    simulating or parsing it: a preset's planned size, or a folder's ``scene.json``."""
-    if plan.preset:
-        return plan.width, plan.height
-    meta = Path(plan.folder) / "scene.json"
-    if meta.is_file():
-        try:
-            info = json.loads(meta.read_text())
-            return int(info["width"]), int(info["height"])
-        except (ValueError, KeyError, TypeError):
-            return None
-    return None
+def cache_folder(plan: ScenePlan, cache: Path) -> Path | None:
+    """Where a planned preset scene is simulated under ``cache`` (None: not simulated there)."""
+    if plan.folder or plan.embedded:
+        return None
+    from rainyscape.synth import SIM_VERSION
+
+    return cache / f"{plan.preset}-{plan.width}x{plan.height}-{plan.rows}x{plan.cols}-v{SIM_VERSION}"
 
 
 def resolve_scene(plan: ScenePlan, cache: Path) -> tuple[str, str]:
@@ -69,15 +62,15 @@ def resolve_scene(plan: ScenePlan, cache: Path) -> tuple[str, str]:
         from rainyscape.synth.demo import ensure_demo_scene
 
         return plan.label, str(ensure_demo_scene())
-    from rainyscape.synth import SIM_VERSION, generate
+    from rainyscape.synth import generate
 
-    folder = cache / f"{plan.preset}-{plan.width}x{plan.height}-{plan.rows}x{plan.cols}-v{SIM_VERSION}"
+    folder = cache_folder(plan, cache)
     if not (folder / "scene.json").is_file():
         print(f"simulating scene '{plan.preset}' ({plan.rows} x {plan.cols} views, {plan.width} x "
               f"{plan.height} px) into {folder} ...", flush=True)
-        tmp = folder.with_name(folder.name + ".partial")
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        generate(tmp, plan.preset, rows=plan.rows, cols=plan.cols, width=plan.width, height=plan.height, force=True)
-        tmp.rename(folder)
+        try:  # built beside the folder and moved in when complete
+            generate(folder, plan.preset, rows=plan.rows, cols=plan.cols, width=plan.width, height=plan.height)
+        except DataError:
+            if not (folder / "scene.json").is_file():  # else another rs-bench simulated it meanwhile
+                raise
     return plan.label, str(folder)

@@ -39,8 +39,11 @@ def cached_oracle(entry: dict | None, folder: str) -> bool:
 
 def unavailable(folder: str) -> str | None:
     """Why a folder has no oracle, when that is known without rendering (None: try it)."""
-    if not (Path(folder) / "scene.json").is_file():
+    meta = Path(folder) / "scene.json"
+    if not meta.is_file():
         return "not a simulated scene folder (no scene.json): no clean scene to re-render"
+    if '"preset"' not in meta.read_text():
+        return "a real capture: its photos are the ground truth, there is no scene to re-render"
     return None
 
 
@@ -62,8 +65,9 @@ def scene_oracle(folder: str, cfg) -> dict:
     import torch
     import torch.nn.functional as F
 
-    from rainyscape.engine.pipeline import load_scene
+    from rainyscape.engine.scene_loading import load_scene
     from rainyscape.errors import RainyScapeError
+    from rainyscape.eval.metric_keys import PSNR, SSIM
     from rainyscape.imaging.metrics import psnr, ssim
     from rainyscape.synth.oracle import rerender_clean
 
@@ -77,7 +81,7 @@ def scene_oracle(folder: str, cfg) -> dict:
     out = {**entry, "available": True, "views": {}}
     try:
         for split, indices in (("train", scene.train_indices), ("heldout", scene.eval_indices)):
-            values = {"psnr": [], "ssim": []}
+            values = {PSNR.name: [], SSIM.name: []}
             for i in indices:
                 img = rerender_clean(path, _view_index(scene.image_names[i], i), samples=ORACLE_SAMPLES)
                 pred = torch.from_numpy(img.astype("float32")).permute(2, 0, 1).clamp(0, 1)
@@ -85,8 +89,8 @@ def scene_oracle(folder: str, cfg) -> dict:
                 if pred.shape != clean.shape:  # the dataparser downscaled the views: do the same
                     factor = pred.shape[-1] // clean.shape[-1]
                     pred = F.avg_pool2d(pred[None, :, :clean.shape[1] * factor, :clean.shape[2] * factor], factor)[0]
-                values["psnr"].append(float(psnr(pred, clean)))
-                values["ssim"].append(float(ssim(pred[None], clean[None])))
+                values[PSNR.name].append(float(psnr(pred, clean)))
+                values[SSIM.name].append(float(ssim(pred[None], clean[None])))
             if indices:
                 out[split] = {k: sum(v) / len(v) for k, v in values.items()}
             out["views"][split] = len(indices)

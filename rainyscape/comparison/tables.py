@@ -15,12 +15,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from rainyscape.bench.budget import Budget
-from rainyscape.bench.matrix import CEILING, Cell
-from rainyscape.bench.oracle import ORACLE_SAMPLES
+from rainyscape.comparison.budget import Budget
+from rainyscape.comparison.matrix import CEILING, Cell
+from rainyscape.comparison.oracle import ORACLE_SAMPLES
+from rainyscape.eval.metric_keys import (ANGLE_ERROR, CORRELATION, COVERAGE, IMAGE_MEASURES, PSNR, PSNR_DRY,
+                                         PSNR_IN_RAIN, Measure, control, post, rain_stat, rainy_input,
+                                         render)
 from rainyscape.eval.summary import mean_of
 
-METRICS = ("psnr", "ssim", "lpips")
 ORACLE = "oracle 3D"
 INPUT = "rainy input"
 GAIN = "↳ fused − input"
@@ -30,17 +32,10 @@ CONTROL = "↳ control: random mask, same coverage"
 @dataclass
 class Row:
     label: str
-    per_scene: dict[str, dict[str, float | None]]  # scene -> metric -> value
+    per_scene: dict[str, dict[Measure, float | None]]  # scene -> measure -> value
     runs: list[dict] = field(default_factory=list)  # the cells' results (time, memory)
     kind: str = "method"  # oracle | ceiling | input | method | fused | gain | control
     method: str = ""  # the row label of the method it belongs to (budget column)
-
-
-def _fmt(value: float | None, metric: str, signed: bool = False) -> str:
-    if value is None:
-        return "n/a"
-    sign = "+" if signed else ""
-    return f"{value:{sign}.2f}" if metric == "psnr" else f"{value:{sign}.3f}"
 
 
 def _markdown(head: list[str], rows: list[list[str]]) -> str:
@@ -59,23 +54,23 @@ def input_summaries(cells: list[Cell], done: dict[str, dict]) -> dict[str, dict]
     the rainy input's metrics (a ceiling cell's "input" is the clean views)."""
     out: dict[str, dict] = {}
     for c in cells:
-        if not c.clean and c.key in done and any(k.startswith("rainy_input_") for k in done[c.key]["summary"]):
+        if not c.clean and c.key in done and any(rainy_input(m).key in done[c.key]["summary"]
+                                                 for m in (*IMAGE_MEASURES, PSNR_IN_RAIN)):
             out.setdefault(c.scene, done[c.key]["summary"])
     return out
 
 
-def table_rows(cells: list[Cell], results: dict, prefix: str) -> list[Row]:
-    """The rows of one evaluation split: ``prefix`` "train" gives the paper's numbers (oracle,
-    rainy input, each method, each fused variant with its gain over the input and its random-
-    mask control); "heldout" gives novel views (oracle and methods)."""
+def table_rows(cells: list[Cell], results: dict, split: str) -> list[Row]:
+    """The rows of one evaluation split: "train" gives the paper's numbers (oracle, rainy
+    input, each method, each fused variant with its gain over the input and its random-mask
+    control); "heldout" gives novel views (oracle and methods)."""
     scenes = list(dict.fromkeys(c.scene for c in cells))
     done = _done(cells, results)
-    split = "train" if prefix == "train" else "heldout"
     oracle = results.get("oracle", {})
-    rows = [Row(ORACLE, {s: {m: oracle[s][split].get(m) for m in METRICS} for s in scenes
+    rows = [Row(ORACLE, {s: {m: oracle[s][split].get(m.name) for m in IMAGE_MEASURES} for s in scenes
                          if oracle.get(s, {}).get("available") and split in oracle[s]}, kind="oracle")]
-    if prefix == "train":
-        floor = {s: {m: summary.get(f"rainy_input_{m}") for m in METRICS}
+    if split == "train":
+        floor = {s: {m: rainy_input(m).of(summary) for m in IMAGE_MEASURES}
                  for s, summary in input_summaries(cells, done).items()}
         rows.append(Row(INPUT, floor, kind="input"))
     for label in dict.fromkeys(c.label for c in cells):
@@ -83,26 +78,27 @@ def table_rows(cells: list[Cell], results: dict, prefix: str) -> list[Row]:
         if not mine:
             continue
         runs = [done[c.key] for c in mine]
-        rows.append(Row(label, {c.scene: {m: done[c.key]["summary"].get(f"{prefix}_{m}") for m in METRICS}
+        rows.append(Row(label, {c.scene: {m: render(m, split).of(done[c.key]["summary"]) for m in IMAGE_MEASURES}
                                 for c in mine}, runs, "ceiling" if mine[0].clean else "method", label))
-        if prefix != "train" or mine[0].clean:
+        if split != "train" or mine[0].clean:
             continue
         for p in dict.fromkeys(p for r in runs for p in r.get("postprocess", [])):
-            def values(key: str, minus: str = "") -> dict:
+            def values(metric, minus=None) -> dict:
+                """Per scene and measure: ``metric(measure)``, less ``minus(measure)`` when given."""
                 out = {}
                 for c in mine:
                     s = done[c.key]["summary"]
                     out[c.scene] = {}
-                    for m in METRICS:
-                        v, base = s.get(key + m), (s.get(minus + m) if minus else 0.0)
+                    for m in IMAGE_MEASURES:
+                        v, base = metric(m).of(s), (minus(m).of(s) if minus else 0.0)
                         out[c.scene][m] = v - base if v is not None and base is not None else None
                 return out
 
-            rows.append(Row(f"{label} + {p}", values(f"train_{p}_"), runs, "fused", label))
-            rows.append(Row(GAIN, values(f"train_{p}_", "rainy_input_"), [], "gain", label))
-            coverage = mean_of([r["summary"].get(f"train_{p}_coverage") for r in runs])
-            control = CONTROL + (f" ({100 * coverage:.1f} %)" if coverage is not None else "")
-            rows.append(Row(control, values(f"train_{p}_random_"), [], "control", label))
+            rows.append(Row(f"{label} + {p}", values(lambda m: post(m, p)), runs, "fused", label))
+            rows.append(Row(GAIN, values(lambda m: post(m, p), rainy_input), [], "gain", label))
+            coverage = mean_of([post(COVERAGE, p).of(r["summary"]) for r in runs])
+            label_ = CONTROL + (f" ({100 * coverage:.1f} %)" if coverage is not None else "")
+            rows.append(Row(label_, values(lambda m: control(m, p)), [], "control", label))
     first = {"oracle": 0, "ceiling": 1}  # the two ceilings, then the floor and the methods
     return sorted(rows, key=lambda r: first.get(r.kind, 2))
 
@@ -136,22 +132,22 @@ def budget_column(cells: list[Cell], results: dict) -> dict[str, str]:
     return text
 
 
-def markdown_table(cells: list[Cell], results: dict, prefix: str) -> str:
+def markdown_table(cells: list[Cell], results: dict, split: str) -> str:
     scenes = list(dict.fromkeys(c.scene for c in cells))
     cols = scenes + (["Average"] if len(scenes) > 1 else [])
-    head = ["Method"] + [f"{s} {m.upper()} {'↓' if m == 'lpips' else '↑'}" for s in cols for m in METRICS]
+    head = ["Method"] + [f"{s} {m.title} {m.arrow}" for s in cols for m in IMAGE_MEASURES]
     head += ["Budget (steps × px/step)", "Train time (s)", "Peak memory (MiB)"]
     lines = []
     budgets = budget_column(cells, results)
-    for row in table_rows(cells, results, prefix):
+    for row in table_rows(cells, results, split):
         signed = row.kind == "gain"
         values = []
         for s in scenes:
-            values += [_fmt(row.per_scene.get(s, {}).get(m), m, signed) for m in METRICS]
+            values += [m.format(row.per_scene.get(s, {}).get(m), signed) for m in IMAGE_MEASURES]
         if len(scenes) > 1:
             complete = all(s in row.per_scene for s in scenes)
-            values += [_fmt(mean_of([row.per_scene[s].get(m) for s in scenes]) if complete else None, m, signed)
-                       for m in METRICS]
+            values += [m.format(mean_of([row.per_scene[s].get(m) for s in scenes]) if complete else None, signed)
+                       for m in IMAGE_MEASURES]
         if row.kind in ("method", "fused", "ceiling"):
             t = mean_of([r.get("train_s") for r in row.runs])
             mem = max([r.get("peak_cuda_mib") or r.get("peak_rss_mib") or 0 for r in row.runs], default=0)
@@ -194,7 +190,7 @@ def fusion_notes(cells: list[Cell], results: dict) -> list[str]:
     for row in rows:
         p = row.label.split(" + ", 1)[1]
         cov = ", ".join(f"{r.get('scene', '?')} {100 * c:.1f} %" for r in row.runs
-                        if (c := r["summary"].get(f"train_{p}_coverage")) is not None)
+                        if (c := post(COVERAGE, p).of(r["summary"])) is not None)
         if cov:
             parts.append(f"{row.label}: {cov}")
     text = (f"`{GAIN}`: the fused row minus the rainy input (PSNR in dB, SSIM). `{CONTROL}`: the same fusion "
@@ -227,23 +223,27 @@ def budget_notes(cells: list[Cell], results: dict) -> list[str]:
     return notes
 
 
+def _corr_angle(corr: float, error: float) -> str:
+    return f"{CORRELATION.format(corr)} / {ANGLE_ERROR.format(error)}°"
+
+
 def rain_table(cells: list[Cell], results: dict) -> str:
     """Per rain method and scene: the predicted rain's correlation with the true rain layer
     and its streak angle's error (degrees), and their means; "" when no cell has them."""
     done = _done(cells, results)
     scenes = list(dict.fromkeys(c.scene for c in cells))
+    corr, error = rain_stat(CORRELATION), rain_stat(ANGLE_ERROR)
     methods = [m for m in dict.fromkeys(c.method for c in cells)
-               if any("rain_correlation" in done.get(f"{sc}/{m}", {}).get("summary", {}) for sc in scenes)]
+               if any(corr.key in done.get(f"{sc}/{m}", {}).get("summary", {}) for sc in scenes)]
     if not methods:
         return ""
-    head = ["Method"] + [f"{sc} corr ↑ / angle err ↓" for sc in scenes] + ["Average"]
+    head = ["Method"] + [f"{sc} corr {CORRELATION.arrow} / angle err {ANGLE_ERROR.arrow}" for sc in scenes] + ["Average"]
     lines = []
     for m in methods:
-        pairs = [(s.get("rain_correlation"), s.get("rain_angle_error_deg"))
-                 for s in (done.get(f"{sc}/{m}", {}).get("summary", {}) for sc in scenes)]
-        cols = ["n/a" if r is None or a is None else f"{r:.2f} / {a:.1f}°" for r, a in pairs]
+        pairs = [(corr.of(s), error.of(s)) for s in (done.get(f"{sc}/{m}", {}).get("summary", {}) for sc in scenes)]
+        cols = ["n/a" if r is None or a is None else _corr_angle(r, a) for r, a in pairs]
         known = [(r, a) for r, a in pairs if r is not None and a is not None]
-        mean = (f"{sum(r for r, _ in known) / len(known):.2f} / {sum(a for _, a in known) / len(known):.1f}°"
+        mean = (_corr_angle(sum(r for r, _ in known) / len(known), sum(a for _, a in known) / len(known))
                 if known else "n/a")
         lines.append([m] + cols + [mean])
     return _markdown(head, lines)
@@ -257,9 +257,10 @@ def region_table(cells: list[Cell], results: dict) -> str:
     scenes = list(dict.fromkeys(c.scene for c in cells))
     summary = {(c.label, c.scene): done[c.key]["summary"] for c in cells if c.key in done}
     rainy = input_summaries(cells, done)
-    rows = [(INPUT, {sc: (rainy.get(sc, {}).get("rainy_input_psnr_in_rain"), None) for sc in scenes})]
-    rows += [(label, {sc: (summary.get((label, sc), {}).get("train_psnr_in_rain"),
-                           summary.get((label, sc), {}).get("train_psnr_dry")) for sc in scenes})
+    wet, dry = render(PSNR_IN_RAIN), render(PSNR_DRY)
+    rows = [(INPUT, {sc: (rainy_input(PSNR_IN_RAIN).of(rainy.get(sc, {})), None) for sc in scenes})]
+    rows += [(label, {sc: (wet.of(summary.get((label, sc), {})), dry.of(summary.get((label, sc), {})))
+                      for sc in scenes})
              for label in dict.fromkeys(c.label for c in cells)]
     lines = []
     for label, values in rows:
@@ -281,10 +282,14 @@ def _mean_of_all(values) -> float | None:
 def _region(wet: float | None, dry: float | None) -> str:
     if wet is None:
         return "n/a"
-    return f"{wet:.2f}" if dry is None else f"{wet:.2f} / {dry:.2f}"
+    return PSNR_IN_RAIN.format(wet) + ("" if dry is None else " / " + PSNR_DRY.format(dry))
 
 
-def gap_table(cells: list[Cell], results: dict, prefix: str) -> str:
+def _gain(gain: float, gap: float) -> str:
+    return f"{PSNR.format(gain, signed=True)} / {PSNR.format(gap)}"
+
+
+def gap_table(cells: list[Cell], results: dict, split: str) -> str:
     """Per method, per scene: its gain over the plain field it trains (PSNR, dB) out of the
     gap between that field on the rainy and on the clean views (the ceiling row), and the
     mean of both; "" without ceiling rows."""
@@ -292,7 +297,7 @@ def gap_table(cells: list[Cell], results: dict, prefix: str) -> str:
     scenes = list(dict.fromkeys(c.scene for c in cells))
     family = {c.label: b.family for c in cells if (b := _budget(c.key, results)) is not None}
     plain = {family[c.label]: c.method for c in cells if c.clean and c.label in family}
-    psnr = {(c.label, c.scene): done[c.key]["summary"].get(f"{prefix}_psnr") for c in cells if c.key in done}
+    psnr = {(c.label, c.scene): render(PSNR, split).of(done[c.key]["summary"]) for c in cells if c.key in done}
     rows = []
     for label in dict.fromkeys(c.label for c in cells if not c.clean):
         base = plain.get(family.get(label))
@@ -303,8 +308,8 @@ def gap_table(cells: list[Cell], results: dict, prefix: str) -> str:
             m, b, top = psnr.get((label, sc)), psnr.get((base, sc)), psnr.get((f"{base}{CEILING}", sc))
             pairs.append(None if None in (m, b, top) else (m - b, top - b))
         known = [x for x in pairs if x is not None]
-        cols = ["n/a" if x is None else f"{x[0]:+.2f} / {x[1]:.2f}" for x in pairs]
-        mean = (f"{sum(g for g, _ in known) / len(known):+.2f} / {sum(t for _, t in known) / len(known):.2f}"
+        cols = ["n/a" if x is None else _gain(*x) for x in pairs]
+        mean = (_gain(sum(g for g, _ in known) / len(known), sum(t for _, t in known) / len(known))
                 if len(known) == len(pairs) else "n/a")
         rows.append([f"{label} (over {base})"] + cols + [mean])
     if not rows:
@@ -326,12 +331,12 @@ def markdown_report(cells: list[Cell], results: dict) -> str:
                   markdown_table(main, results, "train"), ""]
         for note in oracle_notes(main, results) + fusion_notes(main, results) + budget_notes(main, results):
             parts += [note, ""]
-        gaps = [(split, gap_table(main, results, prefix)) for split, prefix in
+        gaps = [(views, gap_table(main, results, split)) for views, split in
                 (("training views", "train"), ("held-out views", "heldout"))]
         if gaps[0][1]:
             parts += ["## Gain over the plain field, out of the gap rain leaves (raw renders)", ""]
-            for split, table in gaps:
-                parts += [f"{split.capitalize()}:", "", table, ""]
+            for views, table in gaps:
+                parts += [f"{views.capitalize()}:", "", table, ""]
             parts += ["Each cell: the method's PSNR minus its plain field's (`nerf` or `3dgs` trained on the "
                       "rainy views) / the same field on the clean views minus on the rainy views: the most a "
                       "rain method on that field can gain at this budget.", ""]

@@ -10,16 +10,19 @@ import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from pathlib import Path
 
-from rainyscape.bench.cell import run_cell_subprocess
-from rainyscape.bench.matrix import Cell, cell_config
-from rainyscape.bench.options import BenchOptions
-from rainyscape.bench.oracle import cached_oracle, na_entry, scene_oracle, unavailable
-from rainyscape.bench.plan import plan_bench
-from rainyscape.bench.results import load_results, machine_description, save_results
-from rainyscape.bench.scenes import resolve_scene
-from rainyscape.bench.tables import markdown_report
-from rainyscape.errors import ConfigError
+from rainyscape.comparison.cell import run_cell_subprocess
+from rainyscape.comparison.matrix import Cell, cell_config
+from rainyscape.comparison.options import BenchOptions
+from rainyscape.comparison.oracle import cached_oracle, na_entry, scene_oracle, unavailable
+from rainyscape.comparison.output import BenchOutput, check_name, check_output, start_afresh
+from rainyscape.comparison.plan import plan_bench
+from rainyscape.comparison.results import load_results, machine_description, save_results
+from rainyscape.comparison.scenes import cache_folder, resolve_scene
+from rainyscape.comparison.tables import markdown_report
+from rainyscape.engine.lock import RunLock
+from rainyscape.eval.metric_keys import PSNR, SSIM, render
 from rainyscape.formats.atomic import write_text_atomic
+from rainyscape.formats.output import make_folders, os_error, remove_made
 
 
 def _oracle_job(folder: str, cell: Cell) -> dict:
@@ -52,8 +55,9 @@ def update_oracles(cells: list[Cell], results: dict, jobs: int, save) -> None:
     for label in dict.fromkeys(c.scene for c in cells):
         entry = oracle[label]
         if entry.get("available"):
-            print(f"oracle 3D on {label}: training views {entry['train']['psnr']:.2f} dB"
-                  + (f", held-out {entry['heldout']['psnr']:.2f} dB" if "heldout" in entry else ""), flush=True)
+            print(f"oracle 3D on {label}: training views {PSNR.text(entry['train'][PSNR.name])}"
+                  + (f", held-out {PSNR.text(entry['heldout'][PSNR.name])}" if "heldout" in entry else ""),
+                  flush=True)
         else:
             print(f"oracle 3D on {label}: n/a ({entry.get('reason')})", flush=True)
 
@@ -61,21 +65,41 @@ def update_oracles(cells: list[Cell], results: dict, jobs: int, save) -> None:
 def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[Path, Path, int]:
     """Run (or resume) the matrix; returns (results json, markdown, number of failed cells).
 
-    Before anything is simulated or trained (:func:`plan_bench`): every cell's config is
-    built, and its budget computed and checked (methods of one field family on one scene must
-    train the same steps on the same mean pixels per step, unless ``allow_unequal``)."""
-    if opts.jobs < 1 or opts.threads < 0:
-        raise ConfigError(f"rs-bench: jobs must be >= 1 and threads >= 0, got {opts.jobs} and {opts.threads}")
+    Before anything is simulated, trained or written (:func:`plan_bench`): every option is
+    checked, every cell's config is built, and its budget computed and checked (methods of one
+    field family on one scene must train the same steps on the same mean pixels per step,
+    unless ``allow_unequal``); then what the benchmark would write over in ``out=`` must be
+    its own (:mod:`rainyscape.comparison.output`), and the benchmark's lock free."""
     plan = plan_bench(opts, overrides)
-    out = Path(opts.out)
-    name = opts.name or time.strftime("%Y-%m-%d")
+    target = BenchOutput(Path(opts.out).expanduser(), check_name(opts.name or time.strftime("%Y-%m-%d")))
+    cache = target.scenes
+    simulated = [f for f in (cache_folder(p, cache) for p in plan.plans.values()) if f is not None]
+    check_output(target, opts.force, simulated)
+    try:
+        made = make_folders(target.out)
+    except OSError as exc:
+        raise os_error(target.out, exc, "cannot create the results folder (out=)") from None
+    lock = RunLock(target.out, "rs-bench", name=target.lock_name, label=f"benchmark {target.results}")
+    with lock:
+        try:
+            if opts.force:
+                start_afresh(target, simulated)
+            return _run_locked(opts, plan, target, command)
+        except BaseException:
+            if not target.results.exists():  # nothing written: leave out= as it was
+                lock.path.unlink(missing_ok=True)
+                remove_made(made)
+            raise
+
+
+def _run_locked(opts: BenchOptions, plan, target: BenchOutput, command: str) -> tuple[Path, Path, int]:
+    name = target.name
     threads = opts.threads or (max(1, (os.cpu_count() or 1) // opts.jobs) if opts.jobs > 1 else 0)
     for m in plan.mismatches:
         print(f"warning: unequal budgets (allow_unequal=true): {m.describe()}", flush=True)
-    cache = out / "scenes"
-    cells = plan.cells({label: resolve_scene(p, cache)[1] for label, p in plan.plans.items()})
+    cells = plan.cells({label: resolve_scene(p, target.scenes)[1] for label, p in plan.plans.items()})
     budgets = plan.budgets
-    json_path, md_path = out / f"{name}.json", out / f"{name}.md"
+    json_path, md_path = target.results, target.tables
     results = load_results(json_path)
     results.update({"name": name, "command": command, "machine": machine_description(),
                     "scene_set": plan.scene_set, "allow_unequal": opts.allow_unequal,
@@ -92,7 +116,7 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
             todo.append((n, cell))
 
     def run(n: int, cell: Cell) -> dict:
-        folder = out / "runs" / name / f"{cell.folder_name}-{prints[cell.key]}"
+        folder = target.runs / f"{cell.folder_name}-{prints[cell.key]}"
         print(f"[{n}/{len(cells)}] {cell.key}: running (log: {folder / 'bench.log'})", flush=True)
         return run_cell_subprocess(cell, folder, opts.device, threads)
 
@@ -113,8 +137,8 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
             write_text_atomic(md_path, markdown_report(cells, results))
             if result["status"] == "finished":
                 s = result["summary"]
-                print(f"[{n}/{len(cells)}] {cell.key}: PSNR {s.get('train_psnr', float('nan')):.2f} dB, "
-                      f"SSIM {s.get('train_ssim', float('nan')):.3f} ({result['how']}, {result['wall_s']:.0f} s)",
+                print(f"[{n}/{len(cells)}] {cell.key}: PSNR {PSNR.text(render(PSNR).of(s))}, "
+                      f"SSIM {SSIM.format(render(SSIM).of(s))} ({result['how']}, {result['wall_s']:.0f} s)",
                       flush=True)
             else:
                 failed += 1
@@ -123,3 +147,4 @@ def run_bench(opts: BenchOptions, overrides: list[str], command: str) -> tuple[P
     save_results(json_path, results)
     write_text_atomic(md_path, markdown_report(cells, results))
     return json_path, md_path, failed
+

@@ -1,0 +1,30 @@
+"""The loss of one training step: the phase's terms, each weighted, each free to stop the
+gradient into the render or into one predicted layer."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import torch
+from torch import Tensor
+
+from rainyscape.components import Loss, LossContext
+from rainyscape.config import LossConfig
+
+
+def compute_losses(terms: dict[str, tuple[LossConfig, Loss]], ctx: LossContext
+                   ) -> tuple[Tensor, dict[str, float]]:
+    """Weighted sum of the loss terms, and each term's value by its key; a term with
+    ``detach`` sees the render (``rendered``) or that layer without its gradient."""
+    total = torch.zeros((), device=ctx.rendered.device)
+    values: dict[str, float] = {}
+    for key, (cfg, term) in terms.items():
+        c = ctx
+        if cfg.detach == "rendered":
+            c = replace(ctx, rendered=ctx.rendered.detach())
+        elif cfg.detach in ctx.layers:
+            c = replace(ctx, layers={**ctx.layers, cfg.detach: ctx.layers[cfg.detach].detach()})
+        value = term(c)
+        total = total + cfg.weight * value
+        values[key] = float(value.detach())
+    return total, values
