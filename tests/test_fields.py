@@ -13,9 +13,8 @@ from rainyscape.fields.grid import GridField, growth_resolution
 from rainyscape.fields.nerf_mlp import NerfMLP, NerfMLPField
 
 SMALL_MLP = dict(depth=4, width=64, skips=(2,), samples_coarse=16, samples_fine=16, train_chunk=0)
-SMALL_GRID = dict(resolution_init=8, resolution_final=24, growth_at=(0.2, 0.5), occupancy_every=10,
-                  occupancy_resolution=16, density_components=4, color_components=4, feature_dim=8,
-                  hidden=16)
+SMALL_GRID = dict(resolution_init=8, resolution_final=24, growth_at=(0.2, 0.5), occupancy_from=0.3,
+                  occupancy_every=10, occupancy_resolution=32)
 
 
 def _options(name: str, **extra):
@@ -136,7 +135,6 @@ def test_grid_growth_carries_adam_state_over(tiny_scene):
     old = [p for g in opts.values() for group in g.param_groups for p in group["params"]]
     old_shapes = {id(p): p.shape for p in old}
     (grow_cb, _) = field.callbacks()
-    old_grid = field.encoding.density_grid.factors()
     grow_cb.before_step(_state(field, 50, 100, opts))  # past growth_at 0.2 and 0.5
     assert field.resolution == 24
     current = {id(p) for p in field.parameters()}
@@ -148,9 +146,27 @@ def test_grid_growth_carries_adam_state_over(tiny_scene):
                 if state:
                     assert state["exp_avg"].shape == p.shape == state["exp_avg_sq"].shape
                     assert torch.all(state["exp_avg_sq"] >= 0)
-    grown = field.encoding.density_grid.factors()
-    assert all(p.shape != q.shape for p, q in zip(grown, old_grid))
+    grown = [p for p in field.density_grid.factors()]
+    assert all(p.shape != old_shapes.get(id(p)) for p in grown)
     _step(field, opts, tiny_scene)  # trains on at the new size
+
+
+def test_occupancy_skips_empty_space_without_changing_the_image(tiny_scene):
+    field = _field("grid", tiny_scene, resolution_init=24, density_grid="dense")
+    with torch.no_grad():  # a single opaque block in an otherwise empty box
+        grid = field.density_grid.grid
+        grid.fill_(-20.0)
+        n = grid.shape[-3:]
+        grid[..., n[0] // 3: n[0] // 2, n[1] // 3: n[1] // 2, n[2] // 3: n[2] // 2] = 10.0
+    cams, window = _full(tiny_scene, [0, 5])
+    field.eval()
+    with torch.no_grad():
+        before = field.render(cams, window)
+        field.update_occupancy()
+        after = field.render(cams, window)
+    assert field.occupancy.fraction() < 0.2
+    assert torch.allclose(before.rgb, after.rgb, atol=2e-3)
+    assert torch.allclose(before.acc, after.acc, atol=2e-3)
 
 
 @pytest.mark.parametrize("name", ["nerf-mlp", "grid"])
@@ -159,7 +175,7 @@ def test_checkpoint_round_trip(name, tiny_scene, tmp_path):
     opts = _adam(field)
     if name == "grid":
         field.grow(20, opts)
-        field.update_occupancy(warmup=False)
+        field.update_occupancy()
     _step(field, opts, tiny_scene)
     path = tmp_path / "ckpt.pt"
     torch.save({"field": field.state_dict(), "opt": {k: o.state_dict() for k, o in opts.items()}}, path)
@@ -197,7 +213,7 @@ def test_density_for_export(name, tiny_scene):
 
 FIT = {  # short CPU fits on the 48 px tiny scene; floors measured (see docs/fields.md), minus margin
     "nerf": (["trainer.max_iters=150", "phases.fit.patches=512", "field.resolution_final=48",
-              "field.occupancy_resolution=24", "field.lr_decay_steps=150"], 0.0),
+              "field.lr_decay_steps=150"], 0.0),
     "vanilla-nerf": (["trainer.max_iters=150", "phases.fit.patches=512", "field.depth=4",
                       "field.width=64", "field.skips=2", "field.samples_coarse=24",
                       "field.samples_fine=24", "field.train_chunk=0", "field.lr=2e-3"], 0.0),

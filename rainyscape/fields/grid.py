@@ -1,27 +1,18 @@
-"""The fast NeRF field: a feature grid (TensoRF VM by default), a tiny colour MLP, an EMA
-occupancy grid for empty-space skipping, packed samples, coarse-to-fine growth.
+"""The fast CPU field: explicit grids + tiny MLP, grown coarse-to-fine.
 
-- **Space** (:mod:`.space`): the scene box is the grid cube for bounded scenes (``box``), its
-  inner part for unbounded ones (``contract``: the rest of space goes to the shell), and NDC
-  for forward-facing captures (``ndc``); ``auto`` picks ``ndc`` for forward-facing scenes
-  and ``contract`` otherwise.
-- **Features** (:mod:`.grid_encodings`): ``vm`` (TensoRF), ``planes`` (K-Planes), ``hash``
-  (Instant-NGP), each giving a raw density and appearance features; sigma =
-  ``density_scale`` softplus(raw + ``density_shift``) and a one-hidden-layer MLP of the features
-  and the encoded view direction gives the colour.
-- **Samples** (:mod:`.marching`): coarse steps of half an occupancy cell, fine steps of
-  ``step_ratio`` voxels inside occupied cells only; ``contract`` adds a far part evenly spaced
-  in inverse distance. A first pass without gradients finds what light reaches each sample;
-  only samples it reaches get gradients (early ray termination) and only samples whose weight
-  shows get a colour. The light left at the end of a ray takes the colour of the ray's end
-  point (``background=last-sample``: far content and sky live on the outer shell).
-- **Occupancy**: an EMA grid updated every ``occupancy_every`` steps from the first step,
-  every cell during the warm-up (nerfacc), which skips nothing yet.
-- **Coarse-to-fine**: the lattice grows from ``resolution_init`` to ``resolution_final`` at
-  the ``growth_at`` fractions of the run. An explicit grid has no spectral bias of its own:
-  its resolution is what makes it fit low frequencies first (the paper's Fig. 2 prior).
-- **Distortion loss** (mip-NeRF 360, ``distortion`` > 0): pulls each ray's weights together,
-  against floaters.
+Space is contracted into the cube [-2, 2]^3: the scene box maps to [-1, 1]^3 and everything
+out to infinity to the shell around it. A density grid (TensoRF vector-matrix factorised by
+default, or dense) and a TensoRF-style factorised colour grid for a
+tiny MLP cover that cube, with per-axis resolutions in proportion to the box so voxels are
+about cubic in the world.
+
+Samples are evenly spaced (in voxels) up to where the ray leaves the scene box, then evenly
+in inverse distance out to ``far`` (evenly in the contracted coordinate). An occupancy grid
+skips empty space; colour is computed only where a sample's weight matters. Light that
+is left at the last sample ends there (as in NeRF): far content and sky live on the shell.
+
+The grids start coarse and grow on a schedule: an explicit grid has no spectral bias of its
+own, so its resolution is what makes it fit low frequencies first (the paper's prior).
 """
 
 from __future__ import annotations
@@ -37,14 +28,14 @@ from torch import Tensor, nn
 from rainyscape.components import Callback, ParamGroup, TrainState
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
+from rainyscape.fields.contraction import contract, contraction_stretch
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
-from rainyscape.fields.grid_encodings import (Encoding, HashEncoding, PlanesEncoding, VMEncoding,
-                                              axis_sizes)
-from rainyscape.fields.marching import PackedSamples, march
-from rainyscape.fields.occupancy import EmaOccupancy
-from rainyscape.fields.packed import distortion, packed_weights, ray_starts, ray_sum
+from rainyscape.fields.feature_grids import DenseGrid, VMGrid, resample
+from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
+from rainyscape.fields.optim_state import replace_adam_param
 from rainyscape.fields.ray_field import RayField
-from rainyscape.fields.space import GridSpace, SampleRays
+from rainyscape.fields.rendering import FAR_DELTA, compositing_weights, sample_deltas
+from rainyscape.fields.sampling import ray_box_intersection
 from rainyscape.scene import SceneData
 
 DENSITY_GROUP, COLOR_GROUP, NETWORK_GROUP = "field_density", "field_color", "field_network"
@@ -61,8 +52,14 @@ def growth_resolution(step: int, max_iters: int, initial: int, final: int,
     return int(round(math.exp(math.log(initial) * (1 - level) + math.log(final) * level)))
 
 
+def axis_sizes(resolution: int, extent: Tensor) -> tuple[int, int, int]:
+    """Lattice points per axis: ``resolution``^3 in all, shared in proportion to ``extent``."""
+    ratio = extent / extent.prod() ** (1.0 / 3.0)
+    return tuple(max(2, int(round(resolution * float(r)))) for r in ratio)
+
+
 class ColorNet(nn.Module):
-    """Appearance features + view direction -> rgb: one small hidden layer."""
+    """Colour features + view direction -> rgb: one small hidden layer."""
 
     def __init__(self, feature_dim: int, view_freqs: int, hidden: int):
         super().__init__()
@@ -76,48 +73,39 @@ class ColorNet(nn.Module):
 
 
 class GridField(RayField):
-    """Fast field: a feature grid, a tiny colour MLP, EMA occupancy, coarse-to-fine growth."""
+    """Fast field: explicit density + factorised colour grids, tiny MLP, coarse-to-fine growth."""
 
-    description = "fast grid field (CPU/GPU): TensoRF VM / K-Planes / hash features, EMA occupancy, coarse-to-fine"
+    description = "fast grid field (CPU/GPU): explicit grids + tiny MLP, occupancy grid, coarse-to-fine"
 
     @dataclass
     class Config:
-        encoding: Literal["vm", "planes", "hash"] = "vm"
-        layout: Literal["auto", "box", "contract", "ndc"] = "auto"  # auto: ndc if forward-facing, else contract
-        inner: float = bounded(0.75, hi=0.99, above=0.0)  # contract: the grid's share given to the scene box
-        box_scale: float = bounded(1.0, above=0.0)  # the scene box scaled about its centre
-        resolution_init: int = bounded(16, 2)  # cube root of the lattice size at the start ...
-        resolution_final: int = bounded(256, 2)  # ... and after the last growth
-        growth_at: tuple[float, ...] = bounded((0.05, 0.1, 0.2, 0.3), 0.0, 1.0)  # fractions of the run where it grows
-        density_components: int = bounded(16, 1)  # vm: components per mode of the density grid
-        color_components: int = bounded(24, 1)  # vm: components per mode of the appearance grid
-        planes_scales: int = bounded(4, 1)  # planes: scales, each twice as fine as the last
-        planes_density_channels: int = bounded(8, 1)
-        planes_color_channels: int = bounded(16, 1)
-        hash_levels: int = bounded(16, 1)
-        hash_features: int = bounded(2, 1)
-        hash_log2_table: int = bounded(17, 4)
-        hash_base: int = bounded(16, 2)  # coarsest level's lattice
-        hash_hidden: int = bounded(64, 1)
-        feature_dim: int = bounded(27, 1)  # appearance features fed to the colour MLP
-        hidden: int = bounded(64, 1)  # colour MLP width
+        # up to 1024: the paper-scale recipe uses 256; a dense 1024^3 grid is already 4 GiB
+        resolution_init: int = bounded(16, 2, 1024)  # cube root of the lattice size of the contracted cube at the start ...
+        resolution_final: int = bounded(128, 2, 1024)  # ... and after the last growth
+        growth_at: tuple[float, ...] = bounded((0.05, 0.1, 0.2, 0.3, 0.4), 0.0, 1.0)  # fractions of the run where it grows
+        # vm: measured 1.1 dB better after 300 steps and twice as fast per step as dense (docs/benchmarks.md)
+        density_grid: Literal["dense", "vm"] = "vm"
+        density_components: int = bounded(4, 1)  # vm density: components per mode
+        color_components: int = bounded(8, 1)  # factorised colour grid: components per mode (x3 modes)
+        feature_dim: int = bounded(16, 1)  # colour features fed to the MLP
+        hidden: int = bounded(32, 1)  # MLP width
         view_freqs: int = bounded(2, 0)  # positional-encoding frequencies of the view direction
-        step_ratio: float = bounded(0.5, above=0.0)  # fine sample spacing in voxels
-        far_fine: int = bounded(1, 1)  # contract: samples per coarse step beyond the box (2 per shell cell)
-        density_scale: float = bounded(25.0, above=0.0)  # sigma = scale * softplus(raw + shift)
+        step_ratio: float = bounded(0.5, above=0.0)  # sample spacing in voxels
+        density_scale: float = bounded(25.0, above=0.0)  # sigma = scale * softplus(grid + shift)
         density_shift: float = -5.0  # a zero grid: a light haze the first steps carve
+        box_scale: float = bounded(1.0, above=0.0)  # the uncontracted region: the scene box scaled about its centre
+        # last-sample: the last sample takes the light that is left (NeRF), so far content and
+        # sky live on the outer shell; a learned constant would rather explain the commonest
+        # surface colour (a grey road) and drain its density.
         background: Literal["last-sample", "black", "white"] = "last-sample"
-        occupancy_resolution: int = bounded(64, 2)  # cube root of the occupancy cells
-        occupancy_every: int = bounded(8, 1)  # steps between updates
-        occupancy_warmup: float = bounded(0.1, 0.0, 1.0)  # fraction of the run: every cell updated, none skipped
-        occupancy_threshold: float = bounded(0.01, 0.0, 1.0)  # opacity of one fine step below which a cell is empty
-        occupancy_dilate: int = bounded(1, 0)  # occupied cells also mark their neighbours within this many cells
-        occupancy_decay: float = bounded(0.8, 0.0, 1.0)  # nerfacc 0.95 every 16 steps: too slow for 1500-step runs
-        weight_threshold: float = bounded(1e-4, 0.0, 1.0)  # colour only where a sample's weight reaches this
+        occupancy_resolution: int = bounded(64, 2)
+        occupancy_from: float = bounded(0.2, 0.0, 1.0)  # fraction of the run before the first occupancy update
+        occupancy_every: int = bounded(25, 1)  # steps between updates
+        occupancy_threshold: float = bounded(0.01, 0.0, 1.0)  # opacity of one step below which a cell is empty
+        weight_threshold: float = bounded(1e-4, 0.0, 1.0)  # colour is computed only where a sample's weight reaches this
         transmittance_threshold: float = bounded(1e-4, 0.0, 1.0)  # samples behind this much opacity get no gradient
-        distortion: float = bounded(0.0, 0.0)  # weight of mip-NeRF 360's distortion loss (0: off)
-        lr_density: float = bounded(0.02, 0.0)
-        lr_color: float = bounded(0.02, 0.0)
+        lr_density: float = bounded(0.1, 0.0)
+        lr_color: float = bounded(0.1, 0.0)
         lr_network: float = bounded(1e-3, 0.0)
         lr_decay: float = bounded(0.1, above=0.0)  # every lr x lr_decay per lr_decay_steps (exponentially)
         lr_decay_steps: int = bounded(3000, 0)
@@ -132,30 +120,24 @@ class GridField(RayField):
                               f"{c.resolution_init}, {c.resolution_final}")
         if any(not 0 <= f <= 1 for f in c.growth_at):
             raise ConfigError(f"field.growth_at: fractions of the run in [0, 1], got {c.growth_at}")
-        if not 0 < c.inner < 1:
-            raise ConfigError(f"field.inner must be in (0, 1), got {c.inner}")
+        if c.step_ratio <= 0 or c.box_scale <= 0:
+            raise ConfigError("field.step_ratio and field.box_scale must be > 0")
         if not 0 < scene.near < scene.far:
             raise ConfigError(f"scene {scene.name}: need 0 < near < far, got {scene.near}, {scene.far}")
         self.eval_chunk, self.train_chunk = c.chunk, c.train_chunk
-        layout = c.layout if c.layout != "auto" else ("ndc" if scene.forward_facing else "contract")
-        self.space = GridSpace(scene, layout, c.inner, c.box_scale)
-        aspect = self.space.extent().cpu()
+        self.near, self.far = float(scene.near), float(scene.far)
+        box = scene.scene_box.float()
+        center, half = 0.5 * (box[0] + box[1]), (0.5 * (box[1] - box[0]) * c.box_scale).clamp_min(1e-3)
+        self.register_buffer("box_center", center, persistent=False)
+        self.register_buffer("box_half", half, persistent=False)
         self.register_buffer("grid_resolution", torch.tensor(c.resolution_init))
-        self.encoding = self._encoding(c, aspect)
-        self.color_net = ColorNet(self.encoding.feature_dim, c.view_freqs, c.hidden)
-        self.occupancy = EmaOccupancy(axis_sizes(c.occupancy_resolution, aspect))
-        # samples per ray of the last render: marched, given gradients (or all, without), shaded
-        self.samples_per_ray = (0.0, 0.0, 0.0)
-
-    @staticmethod
-    def _encoding(c: Config, aspect: Tensor) -> Encoding:
-        if c.encoding == "vm":
-            return VMEncoding(c.resolution_init, aspect, c.density_components, c.color_components, c.feature_dim)
-        if c.encoding == "planes":
-            return PlanesEncoding(c.resolution_init, c.resolution_final, aspect, c.planes_scales,
-                                  c.planes_density_channels, c.planes_color_channels, c.feature_dim)
-        return HashEncoding(c.resolution_init, c.resolution_final, aspect, c.hash_levels, c.hash_features,
-                            c.hash_log2_table, c.hash_base, c.hash_hidden, c.feature_dim)
+        sizes = axis_sizes(c.resolution_init, half)
+        self.density_grid = (DenseGrid(1, sizes) if c.density_grid == "dense"
+                             else VMGrid(c.density_components, sizes))
+        self.color_grid = VMGrid(c.color_components, sizes)
+        self.basis = nn.Linear(self.color_grid.channels, c.feature_dim, bias=False)
+        self.color_net = ColorNet(c.feature_dim, c.view_freqs, c.hidden)
+        self.occupancy = OccupancyGrid(c.occupancy_resolution)
 
     # ------------------------------------------------------------------ geometry
 
@@ -163,176 +145,91 @@ class GridField(RayField):
     def resolution(self) -> int:
         return int(self.grid_resolution)
 
-    @property
-    def layout(self) -> str:
-        return self.space.layout
-
     def stats(self) -> dict[str, float]:
-        """The lattice resolution (cube root), the occupied share of the occupancy grid and the
-        samples per ray of the last render (evaluated, kept for gradients, shaded)."""
-        marched, kept, shaded = self.samples_per_ray
-        return {"grid_resolution": self.resolution, "occupied_fraction": round(self.occupancy.fraction(), 4),
-                "samples_per_ray": round(marched, 1), "grad_samples_per_ray": round(kept, 1),
-                "shaded_per_ray": round(shaded, 1)}
+        """The grids' resolution (cube root of the lattice size) and the occupied share of
+        the occupancy grid."""
+        return {"grid_resolution": self.resolution, "occupied_fraction": round(self.occupancy.fraction(), 4)}
 
-    def _voxel(self, cells_per_axis: tuple[int, int, int]) -> float:
-        """Mean edge (sampling-space units) of a cell when the grid cube has these per axis."""
-        n = torch.tensor(cells_per_axis, dtype=torch.float32)
-        return float((2.0 * self.space.box_half.cpu() / (n * self.space.inner)).mean())
+    def step_size(self) -> float:
+        """Sample spacing in world units inside the scene box."""
+        sizes = torch.tensor(axis_sizes(self.resolution, self.box_half.cpu()), dtype=torch.float32)
+        voxel = 4.0 * self.box_half.cpu() / (sizes - 1)  # the lattice spans the contracted [-2, 2]
+        return self.config.step_ratio * float(voxel.mean())
 
-    def steps(self) -> tuple[float, int, int]:
-        """(coarse step, fine samples per coarse step, far coarse steps) in sampling-space units."""
-        c = self.config
-        lattice = tuple(max(1, n - 1) for n in axis_sizes(self.resolution, self.space.extent().cpu()))
-        fine = c.step_ratio * self._voxel(lattice)
-        # half an occupancy cell, or one fine step where the lattice is coarser than the cells
-        coarse = max(0.5 * self._voxel(self.occupancy.sizes), fine)
-        per = max(1, round(coarse / fine))
-        if self.layout != "contract":
-            return coarse, per, 0
-        # the shell grows with the lattice too: its voxels along a radius over the step (as
-        # many far samples early on let the shell paint what the box has not learnt yet)
-        shell = (self.resolution - 1) * (1.0 - self.space.inner) / 2.0
-        return coarse, per, max(1, math.ceil(shell / c.step_ratio / c.far_fine))
-
-    def _sigma(self, raw: Tensor) -> Tensor:
+    def _sigma(self, grid_points: Tensor) -> Tensor:
+        """Density at points of the grids' [-1, 1]^3 (the contracted cube halved)."""
+        raw = self.density_grid(grid_points).sum(-1)
         return self.config.density_scale * F.softplus(raw + self.config.density_shift)
 
     def density(self, points: Tensor) -> Tensor:
         """Volume density (P,) at world points (P, 3) of the normalised scene (for export)."""
-        g = self.space.world_to_grid(points)
-        sigma = self._sigma(self.encoding.density(g.clamp(-1, 1)))
-        return torch.where((g.abs() <= 1).all(-1), sigma, torch.zeros_like(sigma))
+        return self._sigma(contract((points - self.box_center) / self.box_half) / 2.0)
+
+    def _samples(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+        """Sample distances (R, N) and which are real (R, N), for box-normalised rays."""
+        step = self.step_size()
+        unit_box = torch.tensor([[-1.0] * 3, [1.0] * 3], device=o.device)
+        entry, exit_ = ray_box_intersection(o, d, unit_box)
+        # Past the box exit (or the closest approach to it, for rays that miss) samples go
+        # evenly in inverse distance: that is evenly in the contracted coordinate.
+        closest = -(o * d).sum(-1) / (d * d).sum(-1)
+        split = torch.where(exit_ > entry, exit_, closest).clamp(self.near, self.far)
+        n_lin = max(1, math.ceil(float((split.max() - self.near) / step)))
+        n_far = max(1, math.ceil((self.resolution - 1) / 4.0 / self.config.step_ratio))
+        shape = (o.shape[0], 1)
+        jitter = (torch.rand(shape, device=o.device) if self.training
+                  else torch.full(shape, 0.5, device=o.device))
+        t_lin = self.near + (torch.arange(n_lin, device=o.device) + jitter) * step
+        valid = t_lin < split[:, None]
+        s = (torch.arange(n_far, device=o.device) + jitter) / n_far
+        t_far = 1.0 / ((1.0 - s) / split[:, None] + s / self.far)
+        # Padding sits at the first far sample: zero-length intervals, so a ray renders the
+        # same whatever the longest ray of its batch (chunking does not change images).
+        t_lin = torch.where(valid, t_lin, t_far[:, :1])
+        t = torch.cat([t_lin, t_far], -1)
+        return t, torch.cat([valid, torch.ones_like(t_far, dtype=torch.bool)], -1)
 
     # ----------------------------------------------------------------- rendering
 
-    def _march(self, rays: SampleRays) -> PackedSamples:
-        coarse, per, far = self.steps()
-        step = coarse / rays.length  # the NDC parameter moves |d| NDC units per unit
-        return march(rays.origins, rays.directions, rays.t_a, rays.t_b,
-                     rays.t_far if self.layout == "contract" else None, step, per, far,
-                     lambda q: self.occupancy.lookup(self.space.to_grid(q)), jitter=self.training,
-                     far_fine=self.config.far_fine)
-
-    def _points(self, rays: SampleRays, s: PackedSamples) -> tuple[Tensor, Tensor]:
-        """Grid coordinates (S, 3) and interval lengths (S,) of packed samples."""
-        g = self.space.to_grid(rays.origins[s.ray] + s.t[:, None] * rays.directions[s.ray])
-        return g, (s.t1 - s.t0) * rays.length[s.ray]
-
-    # coarse-step bounds of the segments the first pass marches in turn (the far part is last)
-    SEGMENTS = (8.0, 24.0, 56.0, 120.0)
-
-    @torch.no_grad()
-    def _first_pass(self, rays: SampleRays, s: PackedSamples, n: int):
-        """Density of the samples that light reaches, segment by segment along the rays: a
-        segment is evaluated only for rays that the segments before it left transparent
-        enough (early ray termination without a sequential march). Returns the evaluated
-        samples, their grid points, interval lengths and densities."""
-        c = self.config
-        limit = -math.log(max(c.transmittance_threshold, 1e-12))
-        segment = torch.bucketize(s.u0, torch.tensor(self.SEGMENTS, device=s.u0.device))
-        segment = torch.where(s.far, torch.full_like(segment, len(self.SEGMENTS) + 1), segment)
-        optical = torch.zeros(n, device=s.t.device)
-        done = torch.zeros(len(s), dtype=torch.bool, device=s.t.device)
-        g_all = torch.zeros(len(s), 3, device=s.t.device)
-        d_all, sigma_all = torch.zeros(len(s), device=s.t.device), torch.zeros(len(s), device=s.t.device)
-        for k in range(len(self.SEGMENTS) + 2):
-            idx = ((segment == k) & (optical[s.ray] < limit)).nonzero()[:, 0]
-            if len(idx) == 0:
-                continue
-            part = s.select(idx)
-            g, deltas = self._points(rays, part)
-            sigma = self._sigma(self.encoding.density(g))
-            optical = optical.index_add(0, part.ray, sigma * deltas)
-            done[idx], g_all[idx], d_all[idx], sigma_all[idx] = True, g, deltas, sigma
-        return s.select(done), g_all[done], d_all[done], sigma_all[done]
-
     def render_rays(self, origins: Tensor, directions: Tensor, z_scale: Tensor) -> dict[str, Tensor]:
-        c = self.config
-        n = origins.shape[0]
-        rays = self.space.sample_rays(origins, directions)
-        s = self._march(rays)
-        enc = self.encoding
-        with torch.no_grad():  # what light reaches each sample
-            s, g, deltas, sigma = self._first_pass(rays, s, n)
-            weights, transmittance, left = packed_weights(sigma, deltas, s.ray, n)
-        feats_all = None
+        # Distances stay in world units; positions are measured in half box sizes.
+        o = (origins - self.box_center) / self.box_half
+        d = directions / self.box_half
+        t, valid = self._samples(o, d)
+        last = FAR_DELTA if self.config.background == "last-sample" else 0.0
+        deltas = sample_deltas(t, last=last).clamp_min(0.0)
+        pts = contract(o[:, None] + t[..., None] * d[:, None])  # (R, N, 3) in [-2, 2]
+        live = valid & self.occupancy.lookup(pts)
+        if self.config.background == "last-sample":
+            live[:, -1] = True  # it must stay able to take the light that is left
+        idx = live.nonzero(as_tuple=True)
+        zeros = torch.zeros_like(t)
+        with torch.no_grad():  # march without gradients first: what light reaches each sample
+            sigma = zeros.index_put(idx, self._sigma(pts[idx] / 2.0))
+            _, transmittance = compositing_weights(sigma, deltas)
         if torch.is_grad_enabled():
-            keep = transmittance > c.transmittance_threshold  # a prefix of every ray
-            s, g, deltas = s.select(keep), g[keep], deltas[keep]
-            if isinstance(enc, HashEncoding):  # one pass gives density and features
-                out = enc._out(g)
-                raw, feats_all = out[:, 0], out[:, 1:]
-            else:
-                raw = enc.density(g)
-            sigma = self._sigma(raw)
-            starts = ray_starts(s.ray, n)
-            weights, _, left = packed_weights(sigma, deltas, s.ray, n, starts)
-        shade = (weights.detach() >= c.weight_threshold).nonzero()[:, 0]
-        self.samples_per_ray = (transmittance.numel() / max(1, n), len(s) / max(1, n), len(shade) / max(1, n))
-        # colour where a sample shows and, for the light left at a ray's end, at that end:
-        # one appearance lookup for both
-        ray_of, w_of, pts = s.ray[shade], weights[shade], g[shade]
-        if c.background == "last-sample":
-            end = rays.t_far if self.layout == "contract" else torch.maximum(rays.t_b, rays.t_a)
-            show = (left.detach() >= c.weight_threshold).nonzero()[:, 0]
-            g_end = self.space.to_grid(rays.origins[show] + end[show, None] * rays.directions[show])
-            ray_of, w_of = torch.cat([ray_of, show]), torch.cat([w_of, left[show]])
-        if feats_all is not None:
-            feats = feats_all[shade]
-            if c.background == "last-sample":
-                feats = torch.cat([feats, enc.appearance(g_end.clamp(-1, 1))])
-        else:
-            if c.background == "last-sample":
-                pts = torch.cat([pts, g_end.clamp(-1, 1)])
-            feats = enc.appearance(pts)
-        colors = self.color_net(feats, directions[ray_of])
-        rgb = torch.zeros_like(origins).index_add(0, ray_of, w_of[:, None] * colors)
-        acc = ray_sum(weights, s.ray, n)
-        depth = ray_sum(weights * self._distance(rays, s.t, s.ray), s.ray, n)
-        if c.background == "last-sample":
-            acc = acc + left
-            depth = depth + left * self._distance(rays, end, None)
-        elif c.background == "white":
-            rgb = rgb + left[:, None]
-        out = {"rgb": rgb, "depth": depth * z_scale, "acc": acc}
-        if self.training and c.distortion > 0 and len(s):
-            out["distortion"] = self._distortion(s, weights, left, n)
-        return out
-
-    def _distortion(self, s: PackedSamples, weights: Tensor, left: Tensor, n: int) -> Tensor:
-        """Distortion loss per ray (R,) over the samples and, as one more interval, the ray's
-        end (the light left there): without it, moving all light to the end would be free."""
-        _, _, far = self.steps()
-        span = max(float(s.u1.max()), 1.0) + (0 if far else 1.0)
-        ends = torch.full_like(left, span)
-        ray = torch.cat([s.ray, torch.arange(n, device=left.device)])
-        order = torch.argsort(ray, stable=True)  # each ray's end after its samples
-        u0 = torch.cat([s.u0, ends - 1.0])[order] / span
-        u1 = torch.cat([s.u1, ends])[order] / span
-        w = torch.cat([weights, left])[order]
-        return distortion(w, u0, u1, ray[order], n)
-
-    def _distance(self, rays: SampleRays, t: Tensor, ray: Tensor | None) -> Tensor:
-        if self.layout != "ndc":
-            return t
-        from rainyscape.fields.ndc import ndc_to_distance
-
-        shift, dz = (rays.ndc_shift, rays.ndc_dz) if ray is None else (rays.ndc_shift[ray], rays.ndc_dz[ray])
-        return shift + ndc_to_distance(t.clamp(max=1.0 - 1e-4), self.space.near, dz)
-
-    def extra_losses(self, output, target: Tensor) -> dict[str, Tensor]:
-        d = output.extras.get("distortion")
-        if d is None or self.config.distortion <= 0:
-            return {}
-        return {"distortion": self.config.distortion * d.mean()}
+            # Only samples that light still reaches get gradients (early ray termination).
+            idx = (live & (transmittance > self.config.transmittance_threshold)).nonzero(as_tuple=True)
+            sigma = zeros.index_put(idx, self._sigma(pts[idx] / 2.0))
+        weights, _ = compositing_weights(sigma, deltas)
+        # Colour only where it shows; composited sparsely, straight into the rays.
+        shade = (weights.detach() >= self.config.weight_threshold).nonzero(as_tuple=True)
+        feats = self.basis(self.color_grid(pts[shade] / 2.0))
+        rgb_samples = self.color_net(feats, directions[shade[0]])
+        rgb = torch.zeros_like(origins).index_add(0, shade[0], weights[shade][:, None] * rgb_samples)
+        acc = weights.sum(-1)
+        rest = (1.0 - acc).clamp_min(0.0)
+        if self.config.background == "white":
+            rgb = rgb + rest[:, None]
+        depth = ((weights * t).sum(-1) + rest * self.far) * z_scale
+        return {"rgb": rgb, "depth": depth, "acc": acc}
 
     # -------------------------------------------------------------- optimisation
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config
-        density, color, network = self.encoding.groups()
-        network = network + list(self.color_net.parameters())
+        color = self.color_grid.factors()
+        network = list(self.basis.parameters()) + list(self.color_net.parameters())
 
         def group(name: str, params: list, lr: float) -> ParamGroup:
             # A tiny eps (as instant-ngp): grid gradients are tiny where rays barely reach,
@@ -340,35 +237,31 @@ class GridField(RayField):
             return ParamGroup(name, params, lr=lr, lr_decay=c.lr_decay,
                               lr_decay_steps=c.lr_decay_steps, eps=1e-15)
 
-        groups = [group(DENSITY_GROUP, density, c.lr_density)]
-        if color:
-            groups.append(group(COLOR_GROUP, color, c.lr_color))
-        return groups + [group(NETWORK_GROUP, network, c.lr_network)]
+        return [group(DENSITY_GROUP, self.density_grid.factors(), c.lr_density),
+                group(COLOR_GROUP, color, c.lr_color),
+                group(NETWORK_GROUP, network, c.lr_network)]
 
     def callbacks(self) -> list[Callback]:
         return [GridGrowth(self), OccupancyUpdate(self)]
 
     @torch.no_grad()
     def grow(self, resolution: int, optimizers: dict[str, torch.optim.Optimizer] | None = None) -> None:
-        """Grow the lattice to ``resolution``; Adam's moments follow resampled parameters."""
-        self.encoding.set_resolution(resolution, optimizers or {}, (DENSITY_GROUP, COLOR_GROUP))
+        """Resample the grids to ``resolution``; Adam's moments are resampled alike."""
+        sizes = axis_sizes(resolution, self.box_half.cpu())
+        optimizers = optimizers or {}
+        for name, grid in ((DENSITY_GROUP, self.density_grid), (COLOR_GROUP, self.color_grid)):
+            for old, new in grid.resize(sizes):
+                if name in optimizers:
+                    replace_adam_param(optimizers[name], old, new, lambda m, n=new: resample(m, n.shape[2:]))
         self.grid_resolution.fill_(resolution)
 
     @torch.no_grad()
-    def update_occupancy(self, warmup: bool, generator: torch.Generator | None = None) -> None:
-        """One EMA update: the opacity of one fine step *of the final lattice* at random points
-        of the cells (the same step whatever the current resolution, so that the values stay
-        comparable while the lattice grows)."""
-        c = self.config
-        lattice = tuple(max(1, n - 1) for n in axis_sizes(c.resolution_final, self.space.extent().cpu()))
-        step_grid = c.step_ratio * self._voxel(lattice) / (float(self.space.box_half.mean()) / self.space.inner)
-
-        def opacity(g: Tensor) -> Tensor:
-            sigma = self._sigma(self.encoding.density(g))
-            return 1.0 - torch.exp(-sigma * step_grid * self.space.length_per_grid(g))
-
-        self.occupancy.update(opacity, warmup, c.occupancy_threshold, c.occupancy_decay, generator,
-                              dilate=c.occupancy_dilate)
+    def update_occupancy(self) -> None:
+        """Mark cells whose density would make one marching step at least threshold-opaque."""
+        centers = cell_centers(self.occupancy.resolution, device=self.box_half.device)
+        sigma = self._sigma(centers.reshape(-1, 3) / 2.0).reshape(centers.shape[:-1])
+        alpha = 1.0 - torch.exp(-sigma * self.step_size() * contraction_stretch(centers))
+        self.occupancy.set(occupied_cells(alpha, self.config.occupancy_threshold))
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         # A checkpoint may hold grown grids: grow to its resolution before copying.
@@ -379,7 +272,7 @@ class GridField(RayField):
 
 
 class GridGrowth(Callback):
-    """Grows the lattice on the schedule; the resolution follows from the step, so resuming works."""
+    """Grows the grids on the schedule; the resolution follows from the step, so resuming works."""
 
     def __init__(self, field: GridField):
         self.field = field
@@ -393,12 +286,13 @@ class GridGrowth(Callback):
 
 
 class OccupancyUpdate(Callback):
-    """Updates the occupancy EMA every ``occupancy_every`` steps, all cells during the warm-up."""
+    """Refreshes the occupancy grid every ``occupancy_every`` steps once the field has formed."""
 
     def __init__(self, field: GridField):
         self.field = field
 
     def before_step(self, state: TrainState) -> None:
         c = self.field.config
-        if state.step % c.occupancy_every == 0:
-            self.field.update_occupancy(warmup=state.step < c.occupancy_warmup * state.max_iters)
+        start = round(c.occupancy_from * state.max_iters)
+        if state.step >= start and (state.step - start) % max(1, c.occupancy_every) == 0:
+            self.field.update_occupancy()

@@ -1,4 +1,4 @@
-"""The grid field (``grid``): a known density and colour render to the closed form, the occupancy
+"""The packed-grid field (``packed-grid``): a known density and colour render to the closed form, the occupancy
 grid skips empty space without losing the surface, gradients reach every parameter group of
 each encoding, the three layouts (box, contract, NDC)."""
 
@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from rainyscape.cameras import Cameras, Window
-from rainyscape.fields.grid import GridField
+from rainyscape.fields.packed_grid import PackedGridField
 from rainyscape.fields.grid_encodings import Encoding
 from rainyscape.scene import SceneData
 
@@ -59,7 +59,7 @@ class ConstantColor(nn.Module):
 def _known(scene, encoding, **cfg):
     base = dict(layout="box", background="black", density_scale=1.0, density_shift=0.0,
                 resolution_init=128, resolution_final=128, occupancy_resolution=32)
-    field = GridField(GridField.Config(**{**base, **cfg}), scene)
+    field = PackedGridField(PackedGridField.Config(**{**base, **cfg}), scene)
     field.encoding, field.color_net = encoding, ConstantColor()
     return field.eval()
 
@@ -105,7 +105,7 @@ def test_the_light_left_takes_the_colour_of_the_rays_end(tiny_scene):
 def test_occupancy_skips_empty_space_without_losing_the_surface(tiny_scene):
     block = ((-0.3, -0.3, -0.3), (0.2, 0.25, 0.3))
     field = _known(tiny_scene, SlabEncoding(0, 0, box=block), resolution_init=64, resolution_final=64,
-                   occupancy_resolution=24, layout="contract")
+                   occupancy_resolution=24, layout="contract", inner=0.75)
     cams = tiny_scene.cameras[[0, 5]]
     window = Window.full(cams)
     with torch.no_grad():
@@ -127,11 +127,11 @@ def test_occupancy_skips_empty_space_without_losing_the_surface(tiny_scene):
 @pytest.mark.parametrize("encoding", ["vm", "planes", "hash"])
 def test_gradients_reach_every_parameter_group(encoding, tiny_scene):
     torch.manual_seed(0)
-    cfg = GridField.Config(encoding=encoding, resolution_init=24, resolution_final=24, occupancy_resolution=16,
+    cfg = PackedGridField.Config(encoding=encoding, resolution_init=24, resolution_final=24, occupancy_resolution=16,
                            density_components=4, color_components=4, planes_scales=2,
                            planes_density_channels=4, planes_color_channels=4, hash_levels=4,
                            hash_log2_table=12, feature_dim=8, hidden=16, distortion=0.01)
-    field = GridField(cfg, tiny_scene).train()
+    field = PackedGridField(cfg, tiny_scene).train()
     cams = tiny_scene.cameras[[1]]
     out = field.render(cams, Window.full(cams))
     loss = (out.rgb - 0.3).square().mean() + sum(field.extra_losses(out, out.rgb.detach()).values())
@@ -144,7 +144,7 @@ def test_gradients_reach_every_parameter_group(encoding, tiny_scene):
 
 
 def test_distortion_loss_is_reported_in_training_only(tiny_scene):
-    field = GridField(GridField.Config(resolution_init=8, resolution_final=8, occupancy_resolution=8,
+    field = PackedGridField(PackedGridField.Config(resolution_init=8, resolution_final=8, occupancy_resolution=8,
                                        distortion=0.02), tiny_scene)
     cams = tiny_scene.cameras[[0]]
     out = field.train().render(cams, Window.full(cams))
@@ -169,9 +169,9 @@ def _forward_facing_scene() -> SceneData:
 
 
 def test_layouts_follow_the_capture(tiny_scene):
-    assert GridField(GridField.Config(), tiny_scene).layout == "contract"
+    assert PackedGridField(PackedGridField.Config(), tiny_scene).layout == "contract"
     scene = _forward_facing_scene()
-    field = GridField(GridField.Config(resolution_init=8, resolution_final=8, occupancy_resolution=8), scene)
+    field = PackedGridField(PackedGridField.Config(resolution_init=8, resolution_final=8, occupancy_resolution=8), scene)
     assert field.layout == "ndc"
     # every training pixel's ray, from the near plane to infinity, stays inside the grid cube
     cams = scene.cameras[scene.train_indices]
@@ -186,3 +186,23 @@ def test_layouts_follow_the_capture(tiny_scene):
     with torch.no_grad():
         out = field.eval().render(cams[[0]], Window.full(cams[[0]]))
     assert torch.isfinite(out.depth).all() and torch.all(out.depth > 0)
+
+
+def test_nerf_trains_end_to_end_on_the_packed_grid(tiny_scene_dir, tmp_path):
+    """`nerf field=packed-grid` on the 48 px tiny scene: a short fit renders the held-out views
+    better than after one step (measured 13.4 -> 17.6 dB held-out, see the print)."""
+    from rainyscape import config
+    from rainyscape.workflow import train_and_evaluate
+
+    small = ["field.resolution_init=8", "field.resolution_final=32", "field.occupancy_resolution=16",
+             "field.density_components=4", "field.color_components=4", "field.feature_dim=8",
+             "field.hidden=16"]
+    common = [f"data={tiny_scene_dir}", "field=packed-grid", "trainer.eval_every=0",
+              "trainer.checkpoint_every=0", "trainer.progress=false", "phases.fit.patches=256", *small]
+    psnr = {}
+    for steps in (1, 120):
+        cfg = config.method_config("nerf", [*common, f"trainer.output_dir={tmp_path / str(steps)}",
+                                            f"trainer.max_iters={steps}", f"field.lr_decay_steps={steps}"])
+        psnr[steps] = train_and_evaluate(cfg).metrics["summary"]["heldout_psnr"]
+    print(psnr)
+    assert psnr[120] > psnr[1] + 3.0
