@@ -109,7 +109,7 @@ class PackedGridField(RayField):
         step_ratio: float = bounded(0.5, above=0.0)  # fine sample spacing in voxels
         far_fine: int = bounded(1, 1)  # contract: samples per coarse step beyond the box (2 per shell cell)
         density_scale: float = bounded(25.0, above=0.0)  # sigma = scale * softplus(raw + shift)
-        density_shift: float = -5.0  # a zero grid: a light haze the first steps carve
+        density_shift: float = bounded(-5.0, -30.0, 30.0)  # a zero grid: a light haze the first steps carve
         background: Literal["last-sample", "black", "white"] = "last-sample"
         occupancy_resolution: int = bounded(64, 2)  # cube root of the occupancy cells
         occupancy_every: int = bounded(8, 1)  # steps between updates
