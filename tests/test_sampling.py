@@ -125,3 +125,88 @@ def test_positional_encoding_layout():
         block = enc[0, 3 + 6 * k: 9 + 6 * k]
         assert torch.allclose(block[:3], torch.sin(2.0 ** k * x[0]))
         assert torch.allclose(block[3:], torch.cos(2.0 ** k * x[0]))
+
+
+# ------------------------------------------------------------ the grid field's sampling space
+
+from rainyscape.fields.marching import march  # noqa: E402
+from rainyscape.fields.occupancy import EmaOccupancy  # noqa: E402
+from rainyscape.fields.space import contract_to_cube, shell_stretch  # noqa: E402
+
+
+def _rays(n=64, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    origins = torch.tensor([-3.0, 0.0, 0.0]) + 0.5 * (torch.rand(n, 3, generator=gen) - 0.5)
+    directions = torch.nn.functional.normalize(torch.tensor([1.0, 0.0, 0.0]) + 0.1 * torch.randn(n, 3, generator=gen), dim=-1)
+    t_a, t_b = ray_box_intersection(origins, directions, torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    return origins, directions, t_a, t_b
+
+
+def test_march_through_empty_cells_tiles_the_occupied_part_of_every_ray():
+    o, d, t_a, t_b = _rays()
+    everywhere = march(o, d, t_a, t_b, None, torch.tensor(0.1), 4, 0,
+                       lambda q: torch.ones(q.shape[:-1], dtype=torch.bool), jitter=True)
+    # sorted by ray, then along the ray; intervals tile [t_a, t_b] exactly
+    assert torch.all(everywhere.ray[1:] >= everywhere.ray[:-1])
+    same = everywhere.ray[1:] == everywhere.ray[:-1]
+    assert torch.all(everywhere.t0[1:][same] >= everywhere.t1[:-1][same] - 1e-6)
+    assert torch.all((everywhere.t >= everywhere.t0) & (everywhere.t <= everywhere.t1))
+    length = torch.zeros(len(o)).index_add(0, everywhere.ray, everywhere.t1 - everywhere.t0)
+    assert torch.allclose(length, t_b - t_a, atol=1e-5)
+    # only a slab x in [0.2, 0.4] occupied: samples only there, and all of it still covered
+    slab = march(o, d, t_a, t_b, None, torch.tensor(0.1), 4, 0,
+                 lambda q: (q[..., 0] >= 0.2) & (q[..., 0] <= 0.4), jitter=False)
+    x = (o[slab.ray] + slab.t[:, None] * d[slab.ray])[:, 0]
+    assert torch.all((x >= 0.2) & (x <= 0.4))
+    inside = torch.zeros(len(o)).index_add(0, slab.ray, slab.t1 - slab.t0)
+    enter, leave = (0.2 - o[:, 0]) / d[:, 0], (0.4 - o[:, 0]) / d[:, 0]
+    expected = (torch.minimum(leave, t_b) - torch.maximum(enter, t_a)).clamp_min(0)
+    assert torch.all(inside >= expected - 0.1 / 4 - 1e-6)  # at most half a fine step lost at each face
+    assert len(slab) < len(everywhere) / 5
+
+
+def test_march_far_part_is_even_in_inverse_distance():
+    o, d, t_a, t_b = _rays(8)
+    s = march(o, d, t_a, t_b, torch.full_like(t_a, 100.0), torch.tensor(0.2), 2, 16,
+              lambda q: torch.ones(q.shape[:-1], dtype=torch.bool), jitter=False)
+    far = s.select(s.far)
+    for r in range(8):
+        inv = 1.0 / far.t0[far.ray == r]
+        steps = inv[:-1] - inv[1:]
+        assert torch.allclose(steps, steps.mean().expand_as(steps), rtol=1e-4)
+        assert torch.all(s.t0[(s.ray == r) & s.far] >= s.t1[(s.ray == r) & ~s.far].max() - 1e-6)
+
+
+def test_contract_to_cube_gives_the_box_its_share_and_infinity_the_border():
+    inner = 0.75
+    q = torch.tensor([[0.5, -0.2, 0.9], [2.0, 0.0, 0.0], [0.0, -1e9, 0.0], [1.0, 1.0, -1.0]])
+    g = contract_to_cube(q, inner)
+    assert torch.allclose(g[0], inner * q[0])
+    assert g[1, 0].item() == pytest.approx(inner + (1 - inner) * 0.5)
+    assert g[2, 1].item() == pytest.approx(-1.0, abs=1e-6)
+    assert torch.allclose(g[3], inner * q[3])  # the box's border stays where it is (continuous)
+    # the stretch is the inverse derivative along a radius
+    r = torch.tensor([1.5])
+    eps = 1e-4
+    dg = (contract_to_cube(torch.tensor([[1.5 + eps, 0, 0]]), inner)[0, 0]
+          - contract_to_cube(torch.tensor([[1.5 - eps, 0, 0]]), inner)[0, 0]) / (2 * eps)
+    gr = contract_to_cube(torch.stack([r, torch.zeros(1), torch.zeros(1)], -1), inner)
+    assert shell_stretch(gr, inner).item() == pytest.approx(1.0 / dg.item(), rel=1e-3)
+
+
+def test_ema_occupancy_keeps_surfaces_and_lets_emptied_cells_fade():
+    occ = EmaOccupancy((16, 8, 12))
+    ball = lambda g, c: (((g - torch.tensor(c)) ** 2).sum(-1) < 0.3 ** 2).float()
+    occ.update(lambda g: ball(g, [0.0, 0.0, 0.0]), warmup=True, threshold=0.01, decay=0.5)
+    assert occ.fraction() == 1.0  # nothing skipped during the warm-up
+    occ.update(lambda g: ball(g, [0.0, 0.0, 0.0]), warmup=False, threshold=0.01, decay=0.5)
+    assert 0.0 < occ.fraction() < 0.2
+    assert bool(occ.lookup(torch.zeros(1, 3))[0])  # the ball's centre is kept
+    assert not bool(occ.lookup(torch.tensor([[0.9, 0.9, 0.9]]))[0])
+    assert not bool(occ.lookup(torch.tensor([[1.5, 0.0, 0.0]]))[0])  # outside the cube
+    # the ball moves: its old cells fade over updates instead of at once
+    centre_cell = torch.zeros(1, 3)
+    for _ in range(3):
+        occ.update(lambda g: ball(g, [0.6, 0.0, 0.0]), warmup=True, threshold=0.01, decay=0.5)
+    value = occ.values.reshape(-1)[occ._index(centre_cell)].item()
+    assert 0.0 < value <= 0.5 ** 3 + 1e-6

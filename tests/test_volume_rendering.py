@@ -77,3 +77,78 @@ def test_zero_density_is_fully_transparent_and_gradients_flow():
     assert torch.all(transmittance == 1.0)
     weights.sum().backward()
     assert torch.all(sigma.grad > 0)  # more density anywhere means more opacity
+
+
+# ------------------------------------------------------------------ packed samples (grid field)
+
+from rainyscape.fields.packed import distortion, packed_weights, ray_starts  # noqa: E402
+
+
+def _ragged(counts, seed=0):
+    """Packed rows for rays with ``counts`` samples each (some rays empty)."""
+    gen = torch.Generator().manual_seed(seed)
+    ray = torch.repeat_interleave(torch.arange(len(counts)), torch.tensor(counts))
+    sigma = torch.rand(len(ray), generator=gen, dtype=torch.float64) * 5.0
+    deltas = torch.rand(len(ray), generator=gen, dtype=torch.float64) * 0.3
+    return ray, sigma, deltas
+
+
+def test_packed_weights_match_the_dense_quadrature_ray_by_ray():
+    counts = [5, 0, 1, 12, 3, 0, 7]
+    ray, sigma, deltas = _ragged(counts)
+    weights, transmittance, left = packed_weights(sigma, deltas, ray, len(counts))
+    for r, n in enumerate(counts):
+        rows = ray == r
+        if n == 0:
+            assert left[r] == 1.0  # an empty ray keeps all its light
+            continue
+        # the dense reference, with a final zero-length interval standing for "behind"
+        w, t = compositing_weights(sigma[rows], deltas[rows])
+        assert torch.allclose(weights[rows], w, atol=1e-12)
+        assert torch.allclose(transmittance[rows], t, atol=1e-12)
+        assert torch.isclose(weights[rows].sum() + left[r], torch.tensor(1.0, dtype=torch.float64))
+
+
+def test_packed_slab_matches_the_closed_form():
+    # one ray, 200 samples through a constant slab of optical depth sigma * L
+    n, length = 200, B - A
+    ray = torch.zeros(n, dtype=torch.long)
+    sigma = torch.full((n,), SIGMA, dtype=torch.float64)
+    weights, _, left = packed_weights(sigma, torch.full((n,), length / n, dtype=torch.float64), ray, 1)
+    assert weights.sum().item() == pytest.approx(1.0 - math.exp(-SIGMA * length), abs=1e-12)
+    assert left.item() == pytest.approx(math.exp(-SIGMA * length), abs=1e-12)
+
+
+def test_ray_starts_points_at_each_rays_first_row():
+    ray = torch.tensor([0, 0, 2, 2, 2, 3])
+    assert ray_starts(ray, 5).tolist() == [0, 0, 2, 2, 2, 5]
+
+
+def test_distortion_matches_the_double_sum():
+    counts = [4, 0, 9, 1]
+    ray, w, _ = _ragged(counts, seed=3)
+    w = w / 10.0
+    gen = torch.Generator().manual_seed(4)
+    s0 = torch.zeros_like(w)
+    s1 = torch.zeros_like(w)
+    for r in range(len(counts)):  # sorted, non-overlapping intervals per ray
+        rows = (ray == r).nonzero()[:, 0]
+        edges = torch.sort(torch.rand(2 * len(rows), generator=gen, dtype=torch.float64)).values
+        s0[rows], s1[rows] = edges[0::2], edges[1::2]
+    got = distortion(w, s0, s1, ray, len(counts))
+    for r in range(len(counts)):
+        rows = ray == r
+        wr, mr = w[rows], 0.5 * (s0[rows] + s1[rows])
+        pairs = (wr[:, None] * wr[None, :] * (mr[:, None] - mr[None, :]).abs()).sum()
+        single = (wr ** 2 * (s1[rows] - s0[rows])).sum() / 3.0
+        assert got[r].item() == pytest.approx((pairs + single).item(), abs=1e-12)
+
+
+def test_distortion_prefers_one_thin_surface_to_spread_weight():
+    ray = torch.zeros(10, dtype=torch.long)
+    s0 = torch.linspace(0, 0.9, 10, dtype=torch.float64)
+    s1 = s0 + 0.1
+    peaked = torch.zeros(10, dtype=torch.float64)
+    peaked[4] = 1.0
+    spread = torch.full((10,), 0.1, dtype=torch.float64)
+    assert distortion(peaked, s0, s1, ray, 1) < distortion(spread, s0, s1, ray, 1) / 5
