@@ -120,12 +120,13 @@ FREE_TEXT = {
               "depth", "rain", "transforms", "vocab_tree"},
     "names the registry, a scene or a scene set checks": {
         "method", "methods", "dataparser", "scenes", "ceiling", "ablation", "ablation_method", "views", "name", "heads",
-        "phases", "detach", "depth_key"},
+        "phases", "detach", "depth_key", "reset_group"},
 }
 # Numeric options of other areas' components (fields, rain heads, losses) that have no range
 # yet: listed so that a new option comes with one (issue 31; their owners add the rest).
 KNOWN_UNRANGED = {
     "field:gaussians.seed", "field:grid.density_shift", "field:gaussians.backend", "loss:agr.kernel",
+    "rain_head:distractor-gaussians.seed", "rain_head:distractor-gaussians.backend",  # as the field's
     *(f"rain_head:rain-predictor.{k}" for k in (
         "scene_dim", "view_dim", "mlp_width", "latent_channels", "upscale", "lowres_channels", "highres_channels",
         "initial_rain", "max_rain", "mlp_lr", "cnn_lr", "betas", "latent_std", "latent_steps",

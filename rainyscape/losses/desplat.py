@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from torch import Tensor
 
 from rainyscape.components import Loss, LossContext
+from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.compositing import over, split_rgba
 from rainyscape.imaging.metrics import ssim_map
@@ -33,9 +34,9 @@ class DistractorComposite(Loss):
 
     @dataclass
     class Config:
-        ssim_weight: float = 0.2
-        static_alpha_weight: float = 0.01  # lambda of mean(1 - alpha_B)
-        distractor_alpha_weight: float = 0.01  # lambda of mean(alpha_D)
+        ssim_weight: float = bounded(0.2, 0.0, 1.0)
+        static_alpha_weight: float = bounded(0.01, 0.0)  # lambda of mean(1 - alpha_B)
+        distractor_alpha_weight: float = bounded(0.01, 0.0)  # lambda of mean(alpha_D)
 
     def __init__(self, config: "DistractorComposite.Config | None" = None):
         super().__init__(config or self.Config())

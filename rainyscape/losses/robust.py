@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from rainyscape.components import Loss, LossContext
+from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 
 
@@ -85,12 +86,12 @@ class RobustNeRFLoss(Loss):
 
     @dataclass
     class Config:
-        inlier_quantile: float = 0.8  # T: this quantile of the previous batch's residuals
-        smooth_size: int = 3  # the neighbourhood of the smoothing decision (1: off)
-        smooth_threshold: float = 0.5  # inlier if more than this share of the neighbourhood is
-        inner_patch: int = 8  # the patch decision marks this central square (0: off)
-        patch_threshold: float = 0.5  # ... when more than this share of the patch is inlier
-        initial_threshold: float = 1.0  # T before the first batch (1.0: every pixel is inlier)
+        inlier_quantile: float = bounded(0.8, 0.0, 1.0)  # T: this quantile of the previous batch's residuals
+        smooth_size: int = bounded(3, 1, 255)  # the neighbourhood of the smoothing decision (1: off)
+        smooth_threshold: float = bounded(0.5, 0.0, 1.0)  # inlier if more than this share of the neighbourhood is
+        inner_patch: int = bounded(8, 0, 4096)  # the patch decision marks this central square (0: off)
+        patch_threshold: float = bounded(0.5, 0.0, 1.0)  # ... when more than this share of the patch is inlier
+        initial_threshold: float = bounded(1.0, 0.0)  # T before the first batch (1.0: every pixel is inlier)
 
     def __init__(self, config: "RobustNeRFLoss.Config | None" = None):
         super().__init__(config or self.Config())

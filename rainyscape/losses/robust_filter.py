@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from rainyscape.components import Callback, Loss, LossContext, TrainState
+from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.metrics import ssim_map
 from rainyscape.losses.robust import neighbourhood_inliers
@@ -121,21 +122,21 @@ class RobustFilter(Loss):
 
     @dataclass
     class Config:
-        percentile: float = 0.7  # the threshold: this quantile of the running error histogram
-        bins: int = 10_000  # histogram bins over [0, 1]
-        decay: float = 0.95  # the old histogram's weight at each step
-        smooth_size: int = 3  # the neighbourhood rule (1: off)
-        smooth_threshold: float = 0.5  # ... inlier if more than this share of it is
+        percentile: float = bounded(0.7, 0.0, 1.0)  # the threshold: this quantile of the running error histogram
+        bins: int = bounded(10_000, 2, 10_000_000)  # histogram bins over [0, 1]
+        decay: float = bounded(0.95, 0.0, 1.0)  # the old histogram's weight at each step
+        smooth_size: int = bounded(3, 1, 255)  # the neighbourhood rule (1: off)
+        smooth_threshold: float = bounded(0.5, 0.0, 1.0)  # ... inlier if more than this share of it is
         # the threshold's statistic: "column" (the authors' code: per-column mean errors) or
         # "pixel" (per-pixel residuals, as the method is described)
         statistic: Literal["column", "pixel"] = "column"
         blend_in: bool = True  # Bernoulli blend-in of the mask ...
-        blend_rate: float = -3e-3  # ... a = exp(beta floor((1 + step) / 1.5)), in steps
-        reference_iters: int = 30_000  # reset_at is a step of a run this long (stretched to trainer.max_iters)
-        ssim_weight: float = 0.0  # D-SSIM share (SpotLessSplats: 0), unmasked as in its code
+        blend_rate: float = bounded(-3e-3, -10.0, 0.0)  # ... a = exp(beta floor((1 + step) / 1.5)), in steps
+        reference_iters: int = bounded(30_000, 1)  # reset_at is a step of a run this long (stretched to trainer.max_iters)
+        ssim_weight: float = bounded(0.0, 0.0, 1.0)  # D-SSIM share (SpotLessSplats: 0), unmasked as in its code
         reset_group: str = "shN"  # parameter group clamped once ("" : no reset)
-        reset_at: int = 8002  # ... after this step of a reference_iters run
-        reset_max: float = 0.001  # ... to at most this value
+        reset_at: int = bounded(8002, 0)  # ... after this step of a reference_iters run
+        reset_max: float = bounded(0.001, 0.0)  # ... to at most this value
 
     def __init__(self, config: "RobustFilter.Config | None" = None):
         super().__init__(config or self.Config())
