@@ -65,7 +65,7 @@ def test_the_loss_composites_the_layer_over_the_render_and_trains_only_that_view
     term = DistractorComposite(DistractorComposite.Config(ssim_weight=0.0, distractor_alpha_weight=0.0))
     ctx = LossContext(rendered, target, {"distractor": layer}, RenderOutput(rendered, acc=acc), ids, 0, "fit")
     value = term(ctx)
-    assert float(value) == pytest.approx(float((over(layer, rendered) - target).abs().mean()), rel=1e-6)
+    assert float(value.detach()) == pytest.approx(float((over(layer, rendered) - target).abs().mean()), rel=1e-6)
     assert torch.allclose(head.composite(rendered, layer), over(layer, rendered))
     for p in head.parameters():
         p.grad = None
