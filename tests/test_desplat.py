@@ -65,7 +65,7 @@ def test_the_loss_composites_the_layer_over_the_render_and_trains_only_that_view
     term = DistractorComposite(DistractorComposite.Config(ssim_weight=0.0, distractor_alpha_weight=0.0))
     ctx = LossContext(rendered, target, {"distractor": layer}, RenderOutput(rendered, acc=acc), ids, 0, "fit")
     value = term(ctx)
-    assert float(value.detach()) == pytest.approx(float((over(layer, rendered) - target).abs().mean()), rel=1e-6)
+    assert float(value.detach()) == pytest.approx(float((over(layer, rendered) - target).abs().mean().detach()), rel=1e-6)
     assert torch.allclose(head.composite(rendered, layer), over(layer, rendered))
     for p in head.parameters():
         p.grad = None
@@ -85,7 +85,7 @@ def test_an_opaque_layer_that_explains_the_view_leaves_the_render_untrained():
     term = DistractorComposite(DistractorComposite.Config(ssim_weight=0.2, static_alpha_weight=0.0))
     value = term(LossContext(rendered, target, {"distractor": layer}, None, torch.zeros(1, dtype=torch.long), 0, "fit"))
     value.backward()
-    assert float(value) == pytest.approx(0.01, abs=1e-5)  # only the alpha regulariser: 0.01 x mean(1)
+    assert float(value.detach()) == pytest.approx(0.01, abs=1e-5)  # only the alpha regulariser: 0.01 x mean(1)
     assert float(rendered.grad.abs().max()) == 0.0
 
 
