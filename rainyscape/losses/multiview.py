@@ -69,7 +69,13 @@ class _WithEvidence(Loss):
     """A term built on :class:`_Evidence`; checkpoints keep its depth cache, so a resumed run
     votes as the uninterrupted one would."""
 
-    evidence: _Evidence | None = None
+    def __init__(self, config=None):
+        super().__init__(config or self.Config())
+        self.evidence: _Evidence | None = None
+
+    def setup(self, scene: SceneData, device: torch.device) -> None:
+        c = self.config  # every such term's Config has views, min_views, occlusion
+        self.evidence = _Evidence(scene, device, c.views, c.min_views, c.occlusion)
 
     def state_dict(self) -> dict:
         return {"depths": self.evidence.depths.cpu()} if self.evidence is not None else {}
@@ -94,14 +100,6 @@ class MultiviewPhotometric(_WithEvidence):
         occlusion: float = bounded(0.05, 0.0, 1.0)  # a neighbour nearer by this share does not vote (0: no test)
         residual: Literal["l2", "l1"] = "l2"
         ssim_weight: float = bounded(0.0, 0.0, 1.0)  # w: (1 - w) weighted residual + w weighted D-SSIM (3DGS: 0.2)
-
-    def __init__(self, config: "MultiviewPhotometric.Config | None" = None):
-        super().__init__(config or self.Config())
-        self.evidence: _Evidence | None = None
-
-    def setup(self, scene: SceneData, device: torch.device) -> None:
-        c = self.config
-        self.evidence = _Evidence(scene, device, c.views, c.min_views, c.occlusion)
 
     def weights(self, ctx: LossContext) -> Tensor:
         evidence, _ = self.evidence(ctx)
@@ -135,14 +133,6 @@ class MultiviewRain(_WithEvidence):
         min_views: int = bounded(2, 1)
         occlusion: float = bounded(0.05, 0.0, 1.0)  # a neighbour nearer by this share does not vote (0: no test)
 
-    def __init__(self, config: "MultiviewRain.Config | None" = None):
-        super().__init__(config or self.Config())
-        self.evidence: _Evidence | None = None
-
-    def setup(self, scene: SceneData, device: torch.device) -> None:
-        c = self.config
-        self.evidence = _Evidence(scene, device, c.views, c.min_views, c.occlusion)
-
     def __call__(self, ctx: LossContext) -> Tensor:
         evidence, defined = self.evidence(ctx)
         mask = defined.to(evidence.dtype)
@@ -165,14 +155,6 @@ class MultiviewAnchor(_WithEvidence):
         min_views: int = bounded(2, 1)
         occlusion: float = bounded(0.05, 0.0, 1.0)  # a neighbour nearer by this share does not vote (0: no test)
         scale: float = bounded(0.02, 1e-4, 1.0)  # predicted rain (grey levels) at which a pixel counts 1 - 1/e
-
-    def __init__(self, config: "MultiviewAnchor.Config | None" = None):
-        super().__init__(config or self.Config())
-        self.evidence: _Evidence | None = None
-
-    def setup(self, scene: SceneData, device: torch.device) -> None:
-        c = self.config
-        self.evidence = _Evidence(scene, device, c.views, c.min_views, c.occlusion)
 
     def __call__(self, ctx: LossContext) -> Tensor:
         ref, defined = self.evidence.reference(ctx)
