@@ -153,7 +153,7 @@ def test_a_failure_while_moving_into_place_puts_everything_back(tmp_path, monkey
     earlier_scene(out)
     (out / "notes.txt").write_text("my notes\n")
     before = snapshot(tmp_path)
-    real_move, moves = output._move, []
+    real_move, moves = output.move_entry, []
 
     def failing_move(src: Path, dst: Path) -> None:
         moves.append(src)
@@ -161,7 +161,7 @@ def test_a_failure_while_moving_into_place_puts_everything_back(tmp_path, monkey
             raise OSError(28, "No space left on device")
         real_move(src, dst)
 
-    monkeypatch.setattr(output, "_move", failing_move)
+    monkeypatch.setattr(output, "move_entry", failing_move)
     with pytest.raises(DataError, match="cannot move the new scene into place .*as it was"):
         with staged_scene(tmp_path / "photos", out, overwrite=True) as staging:
             for name in ("images", "sparse"):

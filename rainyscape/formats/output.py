@@ -140,7 +140,7 @@ def staged_folder(out: Path | str, replaces: Iterable[str], force: bool, writes:
     out = out.absolute()
     try:
         made = make_folders(out.parent)
-        staging = _new_staging(out)
+        staging = new_staging(out)
     except OSError as exc:
         raise os_error(out.parent, exc, "cannot write beside the output folder") from None
     try:
@@ -154,7 +154,8 @@ def staged_folder(out: Path | str, replaces: Iterable[str], force: bool, writes:
         remove_made(made)
 
 
-def _new_staging(out: Path) -> Path:
+def new_staging(out: Path) -> Path:
+    """An empty, new staging folder beside ``out`` (``.NAME.partial-XXXXXXXX``)."""
     while True:
         path = out.parent / f".{out.name}{STAGING_MARK}{secrets.token_hex(4)}"
         try:
@@ -164,7 +165,8 @@ def _new_staging(out: Path) -> Path:
             continue
 
 
-def _move(src: Path, dst: Path) -> None:
+def move_entry(src: Path, dst: Path) -> None:
+    """Rename ``src`` to ``dst``, copying when they are on different file systems."""
     try:
         os.rename(src, dst)
     except OSError as exc:
@@ -190,14 +192,14 @@ def _publish(staging: Path, out: Path, replaces: set[str], force: bool, writes: 
         # the old output goes first, its marker first; the new one comes in, its marker last
         for name in sorted(replaces | set(names), key=lambda n: (n != last, n)):
             if os.path.lexists(out / name):
-                _move(out / name, old / name)
+                move_entry(out / name, old / name)
                 done.append((out / name, old / name))
         for name in sorted(names, key=lambda n: (n == last, n)):
-            _move(staging / name, out / name)
+            move_entry(staging / name, out / name)
             done.append((staging / name, out / name))
     except OSError as exc:
         for src, dst in reversed(done):  # put everything back
             with contextlib.suppress(OSError):
-                _move(dst, src)
+                move_entry(dst, src)
         raise DataError(f"{out}: cannot move the new output into place ({exc.strerror or exc}); "
                         "the folder is as it was") from None

@@ -18,15 +18,14 @@ folders made for it, and the output folder is left exactly as it was.
 from __future__ import annotations
 
 import contextlib
-import errno
 import json
 import os
-import secrets
 import shutil
 from pathlib import Path
 from typing import Iterator
 
 from rainyscape.errors import DataError
+from rainyscape.formats.output import make_folders, move_entry, new_staging, remove_made
 
 REPORT = "process_report.json"
 WORK_DIR = "colmap"
@@ -111,10 +110,10 @@ def staged_scene(source: Path, scene_dir: Path, overwrite: bool) -> Iterator[Pat
     out = scene_dir.resolve()
     made: list[Path] = []
     try:
-        made = _make_parents(out.parent)
-        staging = _new_staging(out)
+        made = make_folders(out.parent)
+        staging = new_staging(out)
     except OSError as exc:
-        _remove_empty(made)
+        remove_made(made)
         raise DataError(f"{scene_dir}: cannot write beside the output folder "
                         f"({exc.strerror or exc})") from None
     try:
@@ -123,50 +122,7 @@ def staged_scene(source: Path, scene_dir: Path, overwrite: bool) -> Iterator[Pat
         made = []
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-        _remove_empty(made)
-
-
-def _make_parents(folder: Path) -> list[Path]:
-    """Make ``folder`` and its missing parents; return those made, outermost first."""
-    missing = []
-    while not folder.exists():
-        missing.append(folder)
-        folder = folder.parent
-    made = []
-    for path in reversed(missing):
-        try:
-            path.mkdir()
-        except OSError:
-            _remove_empty(made)
-            raise
-        made.append(path)
-    return made
-
-
-def _remove_empty(folders: list[Path]) -> None:
-    """Remove the folders :func:`_make_parents` made (innermost first) while they are empty."""
-    for folder in reversed(folders):
-        with contextlib.suppress(OSError):
-            folder.rmdir()
-
-
-def _new_staging(out: Path) -> Path:
-    while True:
-        path = out.parent / f".{out.name}.partial-{secrets.token_hex(4)}"
-        try:
-            path.mkdir()  # as the user's umask says: it may become the output folder itself
-            return path
-        except FileExistsError:
-            continue
-
-
-def _move(src: Path, dst: Path) -> None:
-    try:
-        os.rename(src, dst)
-    except OSError as exc:
-        if exc.errno != errno.EXDEV:
-            raise
-        shutil.move(str(src), str(dst))  # the output folder is another file system
+        remove_made(made)
 
 
 def _publish(staging: Path, out: Path, scene_dir: Path, overwrite: bool) -> None:
@@ -181,14 +137,14 @@ def _publish(staging: Path, out: Path, scene_dir: Path, overwrite: bool) -> None
     try:
         for name in OUTPUTS:  # an earlier run's entry goes even where this run wrote none
             if os.path.lexists(out / name):
-                _move(out / name, old / name)
+                move_entry(out / name, old / name)
                 done.append((out / name, old / name))
             if os.path.lexists(staging / name):
-                _move(staging / name, out / name)
+                move_entry(staging / name, out / name)
                 done.append((staging / name, out / name))
     except OSError as exc:
         for src, dst in reversed(done):  # put everything back
             with contextlib.suppress(OSError):
-                _move(dst, src)
+                move_entry(dst, src)
         raise DataError(f"{scene_dir}: cannot move the new scene into place "
                         f"({exc.strerror or exc}); the folder is as it was") from None
