@@ -272,9 +272,11 @@ class GridField(RayField):
 
 
 class GridGrowth(Callback):
-    """Grows the grids on the schedule; the resolution follows from the step, so resuming works."""
+    """Grows a grid field's lattice on the schedule (``config.resolution_init`` ->
+    ``resolution_final`` at ``growth_at``; ``grid`` and ``packed-grid``); the resolution
+    follows from the step, so resuming works."""
 
-    def __init__(self, field: GridField):
+    def __init__(self, field: nn.Module):
         self.field = field
 
     def before_step(self, state: TrainState) -> None:

@@ -40,7 +40,7 @@ from torch import Tensor, nn
 from rainyscape.components import Callback, ParamGroup, TrainState
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
-from rainyscape.fields.encoding import encoded_dim, positional_encoding
+from rainyscape.fields.grid import COLOR_GROUP, DENSITY_GROUP, NETWORK_GROUP, ColorNet, GridGrowth
 from rainyscape.fields.grid_encodings import (Encoding, HashEncoding, PlanesEncoding, VMEncoding,
                                               axis_sizes)
 from rainyscape.fields.marching import PackedSamples, march
@@ -50,32 +50,6 @@ from rainyscape.fields.ray_field import RayField
 from rainyscape.fields.space import GridSpace, SampleRays
 from rainyscape.scene import SceneData
 
-DENSITY_GROUP, COLOR_GROUP, NETWORK_GROUP = "field_density", "field_color", "field_network"
-
-
-def growth_resolution(step: int, max_iters: int, initial: int, final: int,
-                      growth_at: tuple[float, ...]) -> int:
-    """Grid resolution at ``step``: ``initial``, then after each fraction in ``growth_at`` of
-    the run one more of len(growth_at) steps evenly spaced in log resolution up to ``final``."""
-    if not growth_at:
-        return final
-    done = sum(step >= round(f * max_iters) for f in growth_at)
-    level = done / len(growth_at)
-    return int(round(math.exp(math.log(initial) * (1 - level) + math.log(final) * level)))
-
-
-class ColorNet(nn.Module):
-    """Appearance features + view direction -> rgb: one small hidden layer."""
-
-    def __init__(self, feature_dim: int, view_freqs: int, hidden: int):
-        super().__init__()
-        self.view_freqs = view_freqs
-        self.mlp = nn.Sequential(nn.Linear(feature_dim + encoded_dim(3, view_freqs), hidden),
-                                 nn.ReLU(), nn.Linear(hidden, 3))
-
-    def forward(self, features: Tensor, viewdirs: Tensor) -> Tensor:
-        x = torch.cat([features, positional_encoding(viewdirs, self.view_freqs)], -1)
-        return torch.sigmoid(self.mlp(x))
 
 
 class PackedGridField(RayField):
@@ -380,20 +354,6 @@ class PackedGridField(RayField):
         if saved is not None and int(saved) != self.resolution:
             self.grow(int(saved))
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
-
-
-class GridGrowth(Callback):
-    """Grows the lattice on the schedule; the resolution follows from the step, so resuming works."""
-
-    def __init__(self, field: PackedGridField):
-        self.field = field
-
-    def before_step(self, state: TrainState) -> None:
-        c = self.field.config
-        target = growth_resolution(state.step, state.max_iters, c.resolution_init,
-                                   c.resolution_final, tuple(c.growth_at))
-        if target != self.field.resolution:
-            self.field.grow(target, state.optimizers)
 
 
 class OccupancyUpdate(Callback):
