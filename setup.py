@@ -1,15 +1,17 @@
-"""Build of the one compiled part: the CPU rasteriser kernel (C++17, std::thread, CPython C
-API only, so no torch is needed to build it). Package metadata lives in pyproject.toml.
+"""Build of the compiled parts: the CPU rasteriser of the Gaussians and the grid field's
+vector-matrix lookup (C++17, std::thread, CPython C API only, so no torch is needed to build
+them). Package metadata lives in pyproject.toml.
 
-The extension is optional: without a working C++ compiler the install still succeeds (with
-a warning from setuptools) and the torch rasteriser is used; tests/test_rasterize_cpp.py
-fails when a compiler is present but the extension did not build.
+The extensions are optional: without a working C++ compiler the install still succeeds (with
+a warning from setuptools) and the torch code is used; tests/test_rasterize_cpp.py and
+tests/test_vm_cpp.py fail when a compiler is present but an extension did not build.
 """
 
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
 CSRC = "rainyscape/fields/gaussians/csrc"
+SHARED = "rainyscape/csrc"  # the worker pool and Python glue both modules use
 
 
 class BuildExt(build_ext):
@@ -34,7 +36,16 @@ setup(
     ext_modules=[Extension(
         "rainyscape.fields.gaussians._rasterize_cpp",
         sources=[f"{CSRC}/module.cpp", f"{CSRC}/kernel.cpp", f"{CSRC}/projection.cpp"],
-        depends=[f"{CSRC}/kernel.h", f"{CSRC}/kernel_common.h", f"{CSRC}/composite_impl.h"],
+        depends=[f"{CSRC}/kernel.h", f"{CSRC}/kernel_common.h", f"{CSRC}/composite_impl.h",
+                 f"{SHARED}/parallel.h", f"{SHARED}/py_release.h"],
+        include_dirs=[SHARED],
+        language="c++",
+        optional=True,
+    ), Extension(
+        "rainyscape.fields._vm_cpp",
+        sources=["rainyscape/fields/csrc/vm_lookup.cpp"],
+        depends=[f"{SHARED}/parallel.h", f"{SHARED}/py_release.h"],
+        include_dirs=[SHARED],
         language="c++",
         optional=True,
     )],

@@ -151,6 +151,18 @@ def test_grid_growth_carries_adam_state_over(tiny_scene):
     _step(field, opts, tiny_scene)  # trains on at the new size
 
 
+def test_every_grid_parameter_group_gets_gradients(tiny_scene):
+    """Density tables, colour tables and the networks all learn from one photometric loss
+    (the grids through the compiled lookup on a CPU where it was built)."""
+    field = _field("grid", tiny_scene, resolution_init=24)
+    cams, window = _full(tiny_scene, [0])
+    loss = (field.train().render(cams, window).rgb - 0.3).square().mean()
+    loss.backward()
+    for group in field.param_groups():
+        assert group.params and all(p.grad is not None for p in group.params), group.name
+        assert sum(float(p.grad.abs().sum()) for p in group.params) > 0, group.name
+
+
 def test_occupancy_skips_empty_space_without_changing_the_image(tiny_scene):
     field = _field("grid", tiny_scene, resolution_init=24, density_grid="dense")
     with torch.no_grad():  # a single opaque block in an otherwise empty box

@@ -1,9 +1,12 @@
-"""Explicit feature grids over [-1, 1]^3, sampled with ``grid_sample`` and resampled to grow.
+"""Explicit feature grids over [-1, 1]^3, interpolated at points and resampled to grow.
 
 - :class:`DenseGrid`: C channels at nx * ny * nz lattice points, trilinear interpolation.
-- :class:`VMGrid`: TensoRF's vector-matrix factorisation. Feature r of mode m at (x, y, z)
+- :class:`VMTables`: TensoRF's vector-matrix factorisation. Feature r of mode m at (x, y, z)
   is plane_m[r](a, b) * line_m[r](c) for the axis pairs (x, y | z), (x, z | y), (y, z | x):
-  R (na nb + nc) numbers per mode stand for R features on the whole lattice.
+  R (na nb + nc) numbers per mode stand for R features on the whole lattice. Row-major
+  tables, looked up by the compiled kernel on a CPU (vm_cpp.py) and by ``embedding_bag``
+  elsewhere.
+- :class:`PlaneTables`: K-Planes' multi-scale planes, row-major.
 
 Lattices are corner-aligned (``align_corners=True``): n points span [-1, 1] on an axis.
 ``sizes`` are lattice points per axis in (x, y, z) order.
@@ -16,6 +19,8 @@ import math
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from rainyscape.fields import vm_cpp
 
 # (plane axis a, plane axis b, line axis c) per mode
 MODES = ((0, 1, 2), (0, 2, 1), (1, 2, 0))
@@ -39,7 +44,7 @@ class DenseGrid(nn.Module):
     def channels(self) -> int:
         return self.grid.shape[1]
 
-    def forward(self, x: Tensor) -> Tensor:
+    def features(self, x: Tensor) -> Tensor:
         """Features (P, C) at points (P, 3) in [-1, 1]."""
         out = F.grid_sample(self.grid, x.view(1, -1, 1, 1, 3), align_corners=True)
         return out.view(self.channels, -1).T
@@ -48,53 +53,16 @@ class DenseGrid(nn.Module):
         return [self.grid]
 
     @torch.no_grad()
-    def resize(self, sizes: tuple[int, int, int]) -> list[tuple[nn.Parameter, nn.Parameter]]:
+    def resize(self, sizes: tuple[int, int, int]) -> list[tuple[nn.Parameter, nn.Parameter, object]]:
         """Resample to ``sizes`` with new Parameters (autograd fixes a leaf's shape); returns
-        (old, new) pairs so optimisers can follow."""
+        (old, new, how to resample a tensor like old) triples so optimisers can follow."""
         old = self.grid
-        self.grid = nn.Parameter(resample(old.detach(), sizes[::-1]))
-        return [(old, self.grid)]
 
+        def remap(t: Tensor) -> Tensor:
+            return resample(t, tuple(sizes[::-1]))
 
-class VMGrid(nn.Module):
-    """``components`` features per mode (3 x components in all)."""
-
-    def __init__(self, components: int, sizes: tuple[int, int, int], init_scale: float = 0.1):
-        super().__init__()
-        self.planes = nn.ParameterList(
-            [nn.Parameter(init_scale * torch.randn(1, components, sizes[b], sizes[a])) for a, b, _ in MODES])
-        self.lines = nn.ParameterList(
-            [nn.Parameter(init_scale * torch.randn(1, components, sizes[c], 1)) for _, _, c in MODES])
-
-    @property
-    def channels(self) -> int:
-        return 3 * self.planes[0].shape[1]
-
-    def forward(self, x: Tensor) -> Tensor:
-        """All features (P, 3 R) at points (P, 3) in [-1, 1]."""
-        out = []
-        zeros = torch.zeros_like(x[:, :1])
-        for (a, b, c), plane, line in zip(MODES, self.planes, self.lines):
-            # grid_sample reads (x, y) = (width index, height index).
-            p = F.grid_sample(plane, x[None, :, None, [a, b]], align_corners=True)
-            l_ = F.grid_sample(line, torch.cat([zeros, x[:, c:c + 1]], -1)[None, :, None],
-                               align_corners=True)
-            out.append((p * l_)[0, :, :, 0])
-        return torch.cat(out, 0).T
-
-    def factors(self) -> list[nn.Parameter]:
-        return [*self.planes, *self.lines]
-
-    @torch.no_grad()
-    def resize(self, sizes: tuple[int, int, int]) -> list[tuple[nn.Parameter, nn.Parameter]]:
-        """Resample to ``sizes`` with new Parameters; returns (old, new) pairs."""
-        pairs = []
-        for m, (a, b, c) in enumerate(MODES):
-            for factors, size in ((self.planes, (sizes[b], sizes[a])), (self.lines, (sizes[c], 1))):
-                old = factors[m]
-                factors[m] = nn.Parameter(resample(old.detach(), size))
-                pairs.append((old, factors[m]))
-        return pairs
+        self.grid = nn.Parameter(remap(old.detach()))
+        return [(old, self.grid, remap)]
 
 
 # ----------------------------------------------------------------------------------------
@@ -164,17 +132,21 @@ def lattice_to_rows(lattice: Tensor) -> Tensor:
 
 
 class VMTables(nn.Module):
-    """TensoRF's vector-matrix factorisation (as :class:`VMGrid`) in row-major tables: the
-    three planes in one (sum H W, C) table and the three lines in one (sum N, C) table, so a
-    lookup is two ``embedding_bag`` calls for all modes. ``forward`` gives (3, P, C): mode m's
-    plane times line features."""
+    """TensoRF's vector-matrix factorisation in row-major tables: the three planes in one
+    (sum H W, C) table and the three lines in one (sum N, C) table, so a lookup is one pass of
+    the compiled kernel on a CPU (vm_cpp.py) or two ``embedding_bag`` calls for all modes.
+    ``forward`` gives (3, P, C): mode m's plane times line features; ``features`` (P, 3 C)."""
 
     def __init__(self, components: int, sizes: tuple[int, int, int], init_scale: float = 0.1):
         super().__init__()
         self.components = components
         self._layout(sizes)
-        self.plane = nn.Parameter(init_scale * torch.randn(self.plane_rows, components))
-        self.line = nn.Parameter(init_scale * torch.randn(self.line_rows, components))
+        # Drawn per mode as (C, H, W) lattices, planes then lines: the same numbers as a
+        # channel-major (grid_sample) layout of the same seed.
+        planes = [init_scale * torch.randn(components, h, w) for h, w in self.plane_shapes]
+        lines = [init_scale * torch.randn(components, n) for n in self.line_lengths]
+        self.plane = nn.Parameter(torch.cat([p.reshape(components, -1).T for p in planes]))
+        self.line = nn.Parameter(torch.cat([l_.T for l_ in lines]))
 
     def _layout(self, sizes: tuple[int, int, int]) -> None:
         self.sizes = tuple(int(s) for s in sizes)
@@ -193,7 +165,20 @@ class VMTables(nn.Module):
     def channels(self) -> int:
         return 3 * self.components
 
+    def layout(self) -> tuple[int, ...]:
+        """(C, h0, w0, h1, w1, h2, w2, n0, n1, n2): the compiled lookup's description of the tables."""
+        return (self.components, *(n for shape in self.plane_shapes for n in shape), *self.line_lengths)
+
+    def features(self, x: Tensor) -> Tensor:
+        """All features (P, 3 C), mode-major, at points (P, 3) in [-1, 1]."""
+        if vm_cpp.usable(self.plane, x):
+            return vm_cpp.vm_lookup(self.plane, self.line, x, self.layout())
+        return self.forward(x).permute(1, 0, 2).reshape(x.shape[0], -1)
+
     def forward(self, x: Tensor) -> Tensor:
+        if vm_cpp.usable(self.plane, x):
+            return vm_cpp.vm_lookup(self.plane, self.line, x, self.layout()).view(
+                x.shape[0], 3, self.components).transpose(0, 1)
         pi, pw, li, lw = [], [], [], []
         for m, (a, b, c) in enumerate(MODES):
             h, w = self.plane_shapes[m]

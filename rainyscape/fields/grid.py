@@ -30,7 +30,7 @@ from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.fields.contraction import contract, contraction_stretch
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
-from rainyscape.fields.feature_grids import DenseGrid, VMGrid, resample
+from rainyscape.fields.feature_grids import DenseGrid, VMTables
 from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
 from rainyscape.fields.optim_state import replace_adam_param
 from rainyscape.fields.ray_field import RayField
@@ -79,18 +79,21 @@ class GridField(RayField):
 
     @dataclass
     class Config:
-        # up to 1024: the paper-scale recipe uses 256; a dense 1024^3 grid is already 4 GiB
+        # up to 1024 (the GPU recipe's final lattice); a dense 1024^3 grid is already 4 GiB
         resolution_init: int = bounded(16, 2, 1024)  # cube root of the lattice size of the contracted cube at the start ...
-        resolution_final: int = bounded(128, 2, 1024)  # ... and after the last growth
+        # 512: colour texels about a pixel wide on the cpu set's 128 px views (the old 128 lost
+        # 3.8 dB on their training views; docs/benchmarks.md, issue 27)
+        resolution_final: int = bounded(512, 2, 1024)  # ... and after the last growth
         growth_at: tuple[float, ...] = bounded((0.05, 0.1, 0.2, 0.3, 0.4), 0.0, 1.0)  # fractions of the run where it grows
         # vm: measured 1.1 dB better after 300 steps and twice as fast per step as dense (docs/benchmarks.md)
         density_grid: Literal["dense", "vm"] = "vm"
         density_components: int = bounded(4, 1)  # vm density: components per mode
-        color_components: int = bounded(8, 1)  # factorised colour grid: components per mode (x3 modes)
-        feature_dim: int = bounded(16, 1)  # colour features fed to the MLP
+        color_components: int = bounded(24, 1)  # factorised colour grid: components per mode (x3 modes)
+        feature_dim: int = bounded(32, 1)  # colour features fed to the MLP
         hidden: int = bounded(32, 1)  # MLP width
         view_freqs: int = bounded(2, 0)  # positional-encoding frequencies of the view direction
-        step_ratio: float = bounded(0.5, above=0.0)  # sample spacing in voxels
+        # 2 voxels of the final 512 lattice: half a voxel of a 128 one, as many samples as before
+        step_ratio: float = bounded(2.0, above=0.0)  # sample spacing in voxels
         density_scale: float = bounded(25.0, above=0.0)  # sigma = scale * softplus(grid + shift)
         density_shift: float = -5.0  # a zero grid: a light haze the first steps carve
         box_scale: float = bounded(1.0, above=0.0)  # the uncontracted region: the scene box scaled about its centre
@@ -133,8 +136,8 @@ class GridField(RayField):
         self.register_buffer("grid_resolution", torch.tensor(c.resolution_init))
         sizes = axis_sizes(c.resolution_init, half)
         self.density_grid = (DenseGrid(1, sizes) if c.density_grid == "dense"
-                             else VMGrid(c.density_components, sizes))
-        self.color_grid = VMGrid(c.color_components, sizes)
+                             else VMTables(c.density_components, sizes))
+        self.color_grid = VMTables(c.color_components, sizes)
         self.basis = nn.Linear(self.color_grid.channels, c.feature_dim, bias=False)
         self.color_net = ColorNet(c.feature_dim, c.view_freqs, c.hidden)
         self.occupancy = OccupancyGrid(c.occupancy_resolution)
@@ -158,7 +161,7 @@ class GridField(RayField):
 
     def _sigma(self, grid_points: Tensor) -> Tensor:
         """Density at points of the grids' [-1, 1]^3 (the contracted cube halved)."""
-        raw = self.density_grid(grid_points).sum(-1)
+        raw = self.density_grid.features(grid_points).sum(-1)
         return self.config.density_scale * F.softplus(raw + self.config.density_shift)
 
     def density(self, points: Tensor) -> Tensor:
@@ -214,7 +217,7 @@ class GridField(RayField):
         weights, _ = compositing_weights(sigma, deltas)
         # Colour only where it shows; composited sparsely, straight into the rays.
         shade = (weights.detach() >= self.config.weight_threshold).nonzero(as_tuple=True)
-        feats = self.basis(self.color_grid(pts[shade] / 2.0))
+        feats = self.basis(self.color_grid.features(pts[shade] / 2.0))
         rgb_samples = self.color_net(feats, directions[shade[0]])
         rgb = torch.zeros_like(origins).index_add(0, shade[0], weights[shade][:, None] * rgb_samples)
         acc = weights.sum(-1)
@@ -250,9 +253,9 @@ class GridField(RayField):
         sizes = axis_sizes(resolution, self.box_half.cpu())
         optimizers = optimizers or {}
         for name, grid in ((DENSITY_GROUP, self.density_grid), (COLOR_GROUP, self.color_grid)):
-            for old, new in grid.resize(sizes):
+            for old, new, remap in grid.resize(sizes):
                 if name in optimizers:
-                    replace_adam_param(optimizers[name], old, new, lambda m, n=new: resample(m, n.shape[2:]))
+                    replace_adam_param(optimizers[name], old, new, remap)
         self.grid_resolution.fill_(resolution)
 
     @torch.no_grad()

@@ -13,6 +13,9 @@
 #include <string>
 
 #include "kernel.h"
+#include "py_release.h"
+
+using rs::run_released;
 
 namespace {
 
@@ -29,34 +32,6 @@ rs::Binning* binning_of(PyObject* capsule) {
 template <class T>
 T* ptr(unsigned long long address) {
   return reinterpret_cast<T*>(static_cast<uintptr_t>(address));
-}
-
-// Runs fn without the GIL; a C++ exception becomes a Python one. False: error set.
-template <class Fn>
-bool run_released(Fn&& fn) {
-  std::string message;
-  bool out_of_memory = false;
-  Py_BEGIN_ALLOW_THREADS
-  try {
-    fn();
-  } catch (const std::bad_alloc&) {
-    out_of_memory = true;
-  } catch (const std::exception& e) {
-    message = e.what();
-    if (message.empty()) message = "C++ exception";
-  } catch (...) {
-    message = "unknown C++ exception";
-  }
-  Py_END_ALLOW_THREADS
-  if (out_of_memory) {
-    PyErr_NoMemory();
-    return false;
-  }
-  if (!message.empty()) {
-    PyErr_SetString(PyExc_RuntimeError, message.c_str());
-    return false;
-  }
-  return true;
 }
 
 PyObject* py_bin(PyObject*, PyObject* args) {

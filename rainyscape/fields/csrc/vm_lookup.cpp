@@ -1,0 +1,223 @@
+// Python module rainyscape.fields._vm_cpp: TensoRF's vector-matrix lookup on row-major tables
+// (feature_grids.VMTables' layout), forward and backward, in C++. CPython C API only (no torch
+// headers); arrays arrive as data pointers of contiguous float32 CPU tensors checked by
+// vm_cpp.py, which keeps them alive.
+//
+// Feature r of mode m at a point is plane_m(a, b)[r] * line_m(c)[r] for the axis triples
+// (x, y | z), (x, z | y), (y, z | x); bilinear and linear taps with aligned corners and
+// coordinates clamped to [-1, 1], as feature_grids.bilinear_taps / linear_taps. Output rows
+// are (3 C) long, mode-major. Why C++: torch's grid_sample reads channel-major planes (one
+// cache miss per channel and tap) and its backward, like embedding_bag's, runs through
+// generic scatter code; here a tap is one contiguous row of C floats.
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+#include "parallel.h"
+#include "py_release.h"
+
+namespace {
+
+constexpr int kModes[3][3] = {{0, 1, 2}, {0, 2, 1}, {1, 2, 0}};
+constexpr int64_t kBlock = 2048;  // points per work item
+
+struct Layout {
+  int64_t channels;                      // C: components per mode
+  int64_t height[3], width[3], plane0[3];  // plane m: rows plane0[m] + y * width[m] + x
+  int64_t length[3], line0[3];           // line m: rows line0[m] + i
+};
+
+struct Tap1 {
+  int64_t i0;
+  float f;  // weight of i0 + 1
+};
+
+inline Tap1 tap(float u, int64_t n) {
+  const float p = (std::min(std::max(u, -1.0f), 1.0f) + 1.0f) * 0.5f * static_cast<float>(n - 1);
+  int64_t i0 = static_cast<int64_t>(std::floor(p));
+  i0 = std::min<int64_t>(std::max<int64_t>(i0, 0), n - 2);
+  return {i0, p - static_cast<float>(i0)};
+}
+
+// The six rows and weights a point reads for mode m.
+struct Taps {
+  int64_t p00, p01, p10, p11, l0, l1;
+  float w00, w01, w10, w11, v0, v1;
+};
+
+inline Taps taps(const Layout& L, const float* x, int m) {
+  const int a = kModes[m][0], b = kModes[m][1], c = kModes[m][2];
+  const Tap1 tx = tap(x[a], L.width[m]), ty = tap(x[b], L.height[m]), tl = tap(x[c], L.length[m]);
+  Taps t;
+  t.p00 = L.plane0[m] + ty.i0 * L.width[m] + tx.i0;
+  t.p01 = t.p00 + 1;
+  t.p10 = t.p00 + L.width[m];
+  t.p11 = t.p10 + 1;
+  t.w00 = (1 - tx.f) * (1 - ty.f);
+  t.w01 = tx.f * (1 - ty.f);
+  t.w10 = (1 - tx.f) * ty.f;
+  t.w11 = tx.f * ty.f;
+  t.l0 = L.line0[m] + tl.i0;
+  t.l1 = t.l0 + 1;
+  t.v0 = 1 - tl.f;
+  t.v1 = tl.f;
+  return t;
+}
+
+void forward(const Layout& L, const float* plane, const float* line, const float* points,
+             int64_t n, float* out, int threads) {
+  const int64_t C = L.channels;
+  const int64_t blocks = (n + kBlock - 1) / kBlock;
+  rs::detail::parallel_for(blocks, threads, [&](int64_t block, int) {
+    const int64_t end = std::min(n, (block + 1) * kBlock);
+    for (int64_t i = block * kBlock; i < end; ++i) {
+      for (int m = 0; m < 3; ++m) {
+        const Taps t = taps(L, points + 3 * i, m);
+        const float *a = plane + t.p00 * C, *b = plane + t.p01 * C, *c = plane + t.p10 * C,
+                    *d = plane + t.p11 * C, *e = line + t.l0 * C, *f = line + t.l1 * C;
+        float* o = out + (3 * i + m) * C;
+        for (int64_t r = 0; r < C; ++r) {
+          const float p = t.w00 * a[r] + t.w01 * b[r] + t.w10 * c[r] + t.w11 * d[r];
+          o[r] = p * (t.v0 * e[r] + t.v1 * f[r]);
+        }
+      }
+    }
+  });
+}
+
+// Adds into grad_plane / grad_line. Worker w accumulates blocks w, w + threads, ... into its
+// own buffer (worker 0 straight into the outputs), summed in worker order: the same sums in
+// the same order on every run, so resumed runs match uninterrupted ones.
+void backward(const Layout& L, const float* plane, const float* line, const float* points,
+              int64_t n, const float* grad_out, float* grad_plane, float* grad_line,
+              int64_t plane_rows, int64_t line_rows, int threads) {
+  const int64_t C = L.channels;
+  const int64_t blocks = (n + kBlock - 1) / kBlock;
+  threads = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(threads, blocks)));
+  std::vector<std::vector<float>> planes(threads - 1), lines(threads - 1);
+  for (int w = 1; w < threads; ++w) {
+    planes[w - 1].assign(plane_rows * C, 0.0f);
+    lines[w - 1].assign(line_rows * C, 0.0f);
+  }
+  rs::detail::parallel_for(blocks, threads, [&](int64_t block, int worker) {
+    float* gp = worker == 0 ? grad_plane : planes[worker - 1].data();
+    float* gl = worker == 0 ? grad_line : lines[worker - 1].data();
+    const int64_t end = std::min(n, (block + 1) * kBlock);
+    for (int64_t i = block * kBlock; i < end; ++i) {
+      for (int m = 0; m < 3; ++m) {
+        const Taps t = taps(L, points + 3 * i, m);
+        const float *a = plane + t.p00 * C, *b = plane + t.p01 * C, *c = plane + t.p10 * C,
+                    *d = plane + t.p11 * C, *e = line + t.l0 * C, *f = line + t.l1 * C;
+        float *ga = gp + t.p00 * C, *gb = gp + t.p01 * C, *gc = gp + t.p10 * C,
+              *gd = gp + t.p11 * C, *ge = gl + t.l0 * C, *gf = gl + t.l1 * C;
+        const float* g = grad_out + (3 * i + m) * C;
+        for (int64_t r = 0; r < C; ++r) {
+          const float p = t.w00 * a[r] + t.w01 * b[r] + t.w10 * c[r] + t.w11 * d[r];
+          const float l = t.v0 * e[r] + t.v1 * f[r];
+          const float gpl = g[r] * l, gln = g[r] * p;
+          ga[r] += t.w00 * gpl;
+          gb[r] += t.w01 * gpl;
+          gc[r] += t.w10 * gpl;
+          gd[r] += t.w11 * gpl;
+          ge[r] += t.v0 * gln;
+          gf[r] += t.v1 * gln;
+        }
+      }
+    }
+  }, /*fixed=*/true);
+  for (int w = 1; w < threads; ++w) {
+    const float* sp = planes[w - 1].data();
+    for (int64_t k = 0; k < plane_rows * C; ++k) grad_plane[k] += sp[k];
+    const float* sl = lines[w - 1].data();
+    for (int64_t k = 0; k < line_rows * C; ++k) grad_line[k] += sl[k];
+  }
+}
+
+template <class T>
+T* ptr(unsigned long long address) {
+  return reinterpret_cast<T*>(static_cast<uintptr_t>(address));
+}
+
+// layout: (C, h0, w0, h1, w1, h2, w2, n0, n1, n2); every size >= 2 (checked in vm_cpp.py).
+bool parse_layout(PyObject* tuple, Layout& L, int64_t& plane_rows, int64_t& line_rows) {
+  long long v[10];
+  if (!PyArg_ParseTuple(tuple, "LLLLLLLLLL", &v[0], &v[1], &v[2], &v[3], &v[4], &v[5], &v[6],
+                        &v[7], &v[8], &v[9]))
+    return false;
+  L.channels = v[0];
+  plane_rows = line_rows = 0;
+  for (int m = 0; m < 3; ++m) {
+    L.height[m] = v[1 + 2 * m];
+    L.width[m] = v[2 + 2 * m];
+    L.length[m] = v[7 + m];
+    if (L.height[m] < 2 || L.width[m] < 2 || L.length[m] < 2 || L.channels < 1) {
+      PyErr_SetString(PyExc_ValueError, "vm layout: sizes must be >= 2 and channels >= 1");
+      return false;
+    }
+    L.plane0[m] = plane_rows;
+    L.line0[m] = line_rows;
+    plane_rows += L.height[m] * L.width[m];
+    line_rows += L.length[m];
+  }
+  return true;
+}
+
+PyObject* py_forward(PyObject*, PyObject* args) {
+  PyObject* layout;
+  unsigned long long plane, line, points, out;
+  long long n;
+  int threads;
+  if (!PyArg_ParseTuple(args, "O!KKKLKi", &PyTuple_Type, &layout, &plane, &line, &points, &n,
+                        &out, &threads))
+    return nullptr;
+  Layout L;
+  int64_t plane_rows, line_rows;
+  if (!parse_layout(layout, L, plane_rows, line_rows)) return nullptr;
+  if (!rs::run_released([&] {
+        forward(L, ptr<const float>(plane), ptr<const float>(line), ptr<const float>(points), n,
+                ptr<float>(out), threads);
+      }))
+    return nullptr;
+  Py_RETURN_NONE;
+}
+
+PyObject* py_backward(PyObject*, PyObject* args) {
+  PyObject* layout;
+  unsigned long long plane, line, points, grad_out, grad_plane, grad_line;
+  long long n;
+  int threads;
+  if (!PyArg_ParseTuple(args, "O!KKKLKKKi", &PyTuple_Type, &layout, &plane, &line, &points, &n,
+                        &grad_out, &grad_plane, &grad_line, &threads))
+    return nullptr;
+  Layout L;
+  int64_t plane_rows, line_rows;
+  if (!parse_layout(layout, L, plane_rows, line_rows)) return nullptr;
+  if (!rs::run_released([&] {
+        backward(L, ptr<const float>(plane), ptr<const float>(line), ptr<const float>(points), n,
+                 ptr<const float>(grad_out), ptr<float>(grad_plane), ptr<float>(grad_line),
+                 plane_rows, line_rows, threads);
+      }))
+    return nullptr;
+  Py_RETURN_NONE;
+}
+
+PyMethodDef kMethods[] = {
+    {"forward", py_forward, METH_VARARGS,
+     "forward(layout, plane, line, points, N, out, threads): out (N, 3 C)"},
+    {"backward", py_backward, METH_VARARGS,
+     "backward(layout, plane, line, points, N, grad_out, grad_plane, grad_line, threads):"
+     " adds into the gradients"},
+    {nullptr, nullptr, 0, nullptr}};
+
+PyModuleDef kModule = {PyModuleDef_HEAD_INIT, "_vm_cpp",
+                       "Compiled vector-matrix lookup of the grid field (see vm_cpp.py).", -1,
+                       kMethods, nullptr, nullptr, nullptr, nullptr};
+
+}  // namespace
+
+PyMODINIT_FUNC PyInit__vm_cpp(void) { return PyModule_Create(&kModule); }

@@ -1,0 +1,63 @@
+"""The compiled vector-matrix lookup (csrc/vm_lookup.cpp, built by setup.py at install time):
+:class:`feature_grids.VMTables`' features and their gradients in C++, for float32 CPU tables.
+
+Same maths as the torch path (bilinear plane taps times linear line taps, aligned corners,
+coordinates clamped to [-1, 1]); gradients go to the two tables, not to the points (nor do
+they on the torch path: the fields sample at fixed points). Threads: ``torch.get_num_threads()``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+try:
+    from rainyscape.fields import _vm_cpp as _ext
+    _IMPORT_ERROR = ""
+except ImportError as err:  # not built: no compiler at install time, or a stale install
+    _ext = None
+    _IMPORT_ERROR = str(err) or type(err).__name__
+
+
+def cpp_available() -> bool:
+    """Whether the compiled extension was built and imports."""
+    return _ext is not None
+
+
+def unavailable_reason() -> str:
+    """Why the extension cannot be used ('' when it can)."""
+    return "" if _ext is not None else f"the compiled vm lookup did not import ({_IMPORT_ERROR})"
+
+
+def usable(plane: Tensor, points: Tensor) -> bool:
+    """Whether :func:`vm_lookup` can take these: float32 tables and points on the CPU."""
+    return (_ext is not None and plane.device.type == "cpu" and plane.dtype == torch.float32
+            and points.device.type == "cpu")
+
+
+class _VMLookup(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, plane: Tensor, line: Tensor, points: Tensor, layout: tuple) -> Tensor:
+        plane_c, line_c = plane.detach().contiguous(), line.detach().contiguous()
+        points_c = points.detach().to(torch.float32).contiguous()
+        out = torch.empty(points_c.shape[0], 3 * layout[0])
+        _ext.forward(layout, plane_c.data_ptr(), line_c.data_ptr(), points_c.data_ptr(),
+                     points_c.shape[0], out.data_ptr(), torch.get_num_threads())
+        ctx.keep = (plane_c, line_c, points_c, layout)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        plane, line, points, layout = ctx.keep
+        grad = grad.contiguous()
+        g_plane, g_line = torch.zeros_like(plane), torch.zeros_like(line)
+        _ext.backward(layout, plane.data_ptr(), line.data_ptr(), points.data_ptr(), points.shape[0],
+                      grad.data_ptr(), g_plane.data_ptr(), g_line.data_ptr(), torch.get_num_threads())
+        return g_plane, g_line, None, None
+
+
+def vm_lookup(plane: Tensor, line: Tensor, points: Tensor, layout: tuple[int, ...]) -> Tensor:
+    """Features (P, 3 C), mode-major, at ``points`` (P, 3) in [-1, 1]; ``layout`` is
+    (C, h0, w0, h1, w1, h2, w2, n0, n1, n2): the three planes' (height, width) and the three
+    lines' lengths, stacked in that order in the (rows, C) tables ``plane`` and ``line``."""
+    return _VMLookup.apply(plane, line, points, tuple(int(v) for v in layout))
