@@ -46,11 +46,11 @@ def build(method: str, overrides: list[str], out: Path):
     from rainyscape.engine.device import resolve_device
     from rainyscape.engine.run import scene_folder
     from rainyscape.engine.trainer import Trainer, seed_everything
-    from rainyscape.workflow import with_scene
+    from rainyscape.workflow import complete_scene, with_scene
 
     cfg = with_scene(config.method_config(method, overrides))
     seed_everything(cfg.trainer.seed)
-    scene = load_scene(cfg, scene_folder(cfg))
+    scene = complete_scene(cfg, load_scene(cfg, scene_folder(cfg)))  # as rs-train
     pipeline = build_pipeline(cfg, scene, resolve_device(cfg.trainer.device))
     out.mkdir(parents=True, exist_ok=True)
     return cfg, Trainer(pipeline, out)

@@ -18,7 +18,6 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
-from typing import Callable
 
 from rainyscape.config import PipelineConfig
 from rainyscape.engine.run import Run, RunResult, open_run
@@ -38,37 +37,34 @@ def with_scene(cfg: PipelineConfig) -> PipelineConfig:
 
 
 def wants_sparse_points(cfg: PipelineConfig) -> bool:
-    """Whether the run's field starts from the scene's sparse points: its ``init`` option is
-    ``auto`` or ``points`` (the Gaussian field's; ``field.init=random`` or ``frustum`` do not)."""
-    return getattr(cfg.field.options, "init", None) in ("auto", "points")
+    """Whether the run's field needs the scene's sparse points: it starts from them (the
+    Gaussian field's ``init`` is ``auto`` or ``points``; ``random`` or ``frustum`` do not) or
+    bounds its grids by them (the grid field's ``box=points``)."""
+    options = cfg.field.options
+    return getattr(options, "init", None) in ("auto", "points") or getattr(options, "box", None) == "points"
 
 
-def sparse_points_step(cfg: PipelineConfig) -> Callable[[SceneData], SceneData] | None:
-    """What completes the scene before the field is built: for a field that starts from sparse
-    points, points triangulated from the training views (cached) when the scene has none."""
-    if not wants_sparse_points(cfg):
-        return None
+def complete_scene(cfg: PipelineConfig, scene: SceneData) -> SceneData:
+    """The scene as the run's field needs it (rs-train, rs-eval, rs-render and rs-export all
+    build the field from it): for a field that starts from or is bounded by sparse points,
+    points triangulated from the training views (cached) when the scene has none."""
+    if not wants_sparse_points(cfg) or (scene.points is not None and len(scene.points)):
+        return scene
+    if len(scene.train_indices) < 2:
+        return scene
+    import torch
 
-    def add_points(scene: SceneData) -> SceneData:
-        if scene.points is not None and len(scene.points):
-            return scene
-        if len(scene.train_indices) < 2:
-            return scene
-        import torch
+    from rainyscape.process.scene_points import with_sparse_points
+    from rainyscape.process.triangulate import TriangulationOptions
 
-        from rainyscape.process.scene_points import with_sparse_points
-        from rainyscape.process.triangulate import TriangulationOptions
-
-        print(f"sparse points: {scene.name} has none; triangulating them from its "
-              f"{len(scene.train_indices)} training views (pycolmap, known poses) ...", file=sys.stderr)
-        try:
-            return with_sparse_points(scene, TriangulationOptions(num_threads=torch.get_num_threads()))
-        except (RuntimeError, ValueError, OSError) as exc:  # a failed SfM step must not stop training
-            warn(f"triangulating sparse points failed ({type(exc).__name__}: {exc}); the field "
-                 "starts without them")
-            return dataclasses.replace(scene, points_source=f"none (triangulation failed: {exc})")
-
-    return add_points
+    print(f"sparse points: {scene.name} has none; triangulating them from its "
+          f"{len(scene.train_indices)} training views (pycolmap, known poses) ...", file=sys.stderr)
+    try:
+        return with_sparse_points(scene, TriangulationOptions(num_threads=torch.get_num_threads()))
+    except (RuntimeError, ValueError, OSError) as exc:  # a failed SfM step must not stop training
+        warn(f"triangulating sparse points failed ({type(exc).__name__}: {exc}); the field "
+             "starts without them")
+        return dataclasses.replace(scene, points_source=f"none (triangulation failed: {exc})")
 
 
 def points_record(cfg: PipelineConfig, scene: SceneData) -> dict:
@@ -122,7 +118,7 @@ def train_and_evaluate(cfg: PipelineConfig, run_dir: Path | None = None) -> RunR
     metrics: dict = {}
     with open_run(with_scene(cfg), run_dir,
                   evaluator=lambda pipeline: quick_eval(pipeline, cfg.trainer.eval_views),
-                  prepare_scene=sparse_points_step(cfg)) as run:
+                  prepare_scene=complete_scene) as run:
         log_points(run)
         with run.folder.recording_failures():
             run.trainer.train()

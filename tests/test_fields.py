@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 
 import pytest
 import torch
@@ -9,8 +10,11 @@ import torch
 from rainyscape import config
 from rainyscape.cameras import Window
 from rainyscape.components import TrainState
+from rainyscape.dataparsers.base import points_box
+from rainyscape.errors import ConfigError
 from rainyscape.fields.grid import GridField, growth_resolution
 from rainyscape.fields.nerf_mlp import NerfMLP, NerfMLPField
+from rainyscape.workflow import wants_sparse_points
 
 SMALL_MLP = dict(depth=4, width=64, skips=(2,), samples_coarse=16, samples_fine=16, train_chunk=0)
 SMALL_GRID = dict(resolution_init=8, resolution_final=24, growth_at=(0.2, 0.5), occupancy_from=0.3,
@@ -161,6 +165,20 @@ def test_every_grid_parameter_group_gets_gradients(tiny_scene):
     for group in field.param_groups():
         assert group.params and all(p.grad is not None for p in group.params), group.name
         assert sum(float(p.grad.abs().sum()) for p in group.params) > 0, group.name
+
+
+def test_points_box_bounds_the_grids_by_the_sparse_points(tiny_scene):
+    g = torch.Generator().manual_seed(0)
+    points = torch.randn(500, 3, generator=g) * torch.tensor([0.2, 0.1, 0.3]) + torch.tensor([0.1, 0.0, -0.2])
+    field = _field("grid", dataclasses.replace(tiny_scene, points=points), box="points")
+    lo, hi = points_box(points)
+    assert torch.allclose(field.box_center, (lo + hi) / 2) and torch.allclose(field.box_half, (hi - lo) / 2)
+    assert (field.box_half < (tiny_scene.scene_box[1] - tiny_scene.scene_box[0]) / 2).all()
+    with pytest.raises(ConfigError, match="field.box=points"):
+        _field("grid", dataclasses.replace(tiny_scene, points=None), box="points")
+    # rs-train, rs-eval, rs-render and rs-export triangulate points for it when a scene has none
+    assert wants_sparse_points(config.method_config("nerf", ["field.box=points"]))
+    assert not wants_sparse_points(config.method_config("nerf"))
 
 
 def test_occupancy_skips_empty_space_without_changing_the_image(tiny_scene):

@@ -60,9 +60,10 @@ def main(argv: list[str]) -> int:
     check_output_folder(out, opts.force, WRITES)  # before the run is loaded
     from rainyscape.components import PlyExportable
     from rainyscape.engine.run import load_run
+    from rainyscape.workflow import complete_scene
     from rainyscape.eval import export
 
-    pipeline, step = load_run(folder, opts.device, data=opts.data)
+    pipeline, step = load_run(folder, opts.device, data=opts.data, prepare_scene=complete_scene)
     what = opts.what
     if what == "auto":
         what = "gaussians" if isinstance(pipeline.field, PlyExportable) else "mesh"

@@ -47,12 +47,13 @@ def main(argv: list[str]) -> int:
         return print_help(COMMAND)
     folder, opts = run_dir(args, COMMAND), args.options
     from rainyscape.engine.run import load_run
+    from rainyscape.workflow import complete_scene
     from rainyscape.eval.report import write_report
     from rainyscape.formats.output import check_writable
 
     check_writable(folder, "rs-render writes renders/ and report.html there")
 
-    pipeline, step = load_run(folder, opts.device, data=opts.data)
+    pipeline, step = load_run(folder, opts.device, data=opts.data, prepare_scene=complete_scene)
     if opts.embedding_study:
         from rainyscape.eval.embedding import write_embedding_study
 

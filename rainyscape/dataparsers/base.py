@@ -112,6 +112,12 @@ def downscale_images(images: Tensor, factor: int) -> Tensor:
     return x.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).contiguous()
 
 
+def points_box(points: Tensor) -> Tensor:
+    """(2, 3) bounds of the content from sparse points: their 1 % and 99 % quantiles per axis
+    (a few stray triangulations must not stretch the box)."""
+    return torch.stack([points.float().quantile(0.01, 0), points.float().quantile(0.99, 0)])
+
+
 def assemble_scene(config: CommonParserConfig, *, name: str, source: Path, images: Tensor,
                    cameras: Cameras, image_names: list[str], clean_images: Tensor | None = None,
                    depths: Tensor | None = None, rain_layers: Tensor | None = None,
@@ -162,8 +168,7 @@ def assemble_scene(config: CommonParserConfig, *, name: str, source: Path, image
     else:
         near, far = near * scale, far * scale
     if points is not None and len(points):
-        lo, hi = points.quantile(0.01, 0), points.quantile(0.99, 0)
-        box = torch.stack([lo, hi])
+        box = points_box(points)
     else:
         # No points: cameras around the centre see content out to about their own distance
         # (a half-size cube cut off the street scenes' buildings and ground).

@@ -75,10 +75,10 @@ def scene_folder(cfg: PipelineConfig) -> Path:
 
 def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
              evaluator: Callable[[Pipeline], dict] | None = None,
-             prepare_scene: Callable[[SceneData], SceneData] | None = None) -> Run:
+             prepare_scene: Callable[[PipelineConfig, SceneData], SceneData] | None = None) -> Run:
     """A new run folder for ``cfg`` (or ``run_dir`` reopened to resume): locked, scene,
     pipeline and trainer built, checkpoint loaded. ``evaluator(pipeline)`` is the trainer's
-    periodic evaluation; ``prepare_scene(scene)`` completes the parsed scene before the
+    periodic evaluation; ``prepare_scene(cfg, scene)`` completes the parsed scene before the
     pipeline is built (the workflow adds sparse points there). Input errors surface before any
     folder is made; a folder another process trains in raises RunBusyError before anything in
     it changes, and so does anything that fails before training starts (a resume that does not
@@ -97,7 +97,7 @@ def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
         seed_everything(cfg.trainer.seed)
         scene = load_scene(cfg, scene_folder(cfg))
         if prepare_scene is not None:
-            scene = prepare_scene(scene)
+            scene = prepare_scene(cfg, scene)
         cfg = with_run_length(cfg, len(scene.train_indices))
         if run_dir is None:
             created = new_run_dir(cfg.trainer.output_dir, scene.name, cfg.method)
@@ -131,9 +131,12 @@ def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
 
 
 def load_run(run_dir: Path, device: str = "auto", step: int | None = None,
-             data: str | Path | None = None) -> tuple[Pipeline, int]:
+             data: str | Path | None = None,
+             prepare_scene: Callable[[PipelineConfig, SceneData], SceneData] | None = None
+             ) -> tuple[Pipeline, int]:
     """Rebuild a run's pipeline from config.yml and load its latest readable (or given)
-    checkpoint. ``data`` replaces the scene folder config.yml names (a moved scene)."""
+    checkpoint. ``data`` replaces the scene folder config.yml names (a moved scene);
+    ``prepare_scene`` completes the scene as it did for training (see :func:`open_run`)."""
     folder = RunFolder.check(run_dir)
     cfg = folder.config()
     if data:
@@ -144,5 +147,8 @@ def load_run(run_dir: Path, device: str = "auto", step: int | None = None,
         hint = "pass data=NEW_FOLDER" if not data else "check data="
         raise DataError(f"{scene_dir}: the run's scene folder is not there (moved?); {hint} "
                         f"(named in {folder.config_file})")
-    pipeline = build_pipeline(cfg, load_scene(cfg, scene_dir), dev)
+    scene = load_scene(cfg, scene_dir)
+    if prepare_scene is not None:
+        scene = prepare_scene(cfg, scene)
+    pipeline = build_pipeline(cfg, scene, dev)
     return pipeline, folder.restore(pipeline, step)

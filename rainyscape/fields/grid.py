@@ -27,6 +27,7 @@ from torch import Tensor, nn
 
 from rainyscape.components import Callback, ParamGroup, TrainState
 from rainyscape.config.schema import bounded
+from rainyscape.dataparsers.base import points_box
 from rainyscape.errors import ConfigError
 from rainyscape.fields.contraction import contract, contraction_stretch
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
@@ -96,7 +97,11 @@ class GridField(RayField):
         step_ratio: float = bounded(2.0, above=0.0)  # sample spacing in voxels
         density_scale: float = bounded(25.0, above=0.0)  # sigma = scale * softplus(grid + shift)
         density_shift: float = -5.0  # a zero grid: a light haze the first steps carve
-        box_scale: float = bounded(1.0, above=0.0)  # the uncontracted region: the scene box scaled about its centre
+        box_scale: float = bounded(1.0, above=0.0)  # the uncontracted region: the box scaled about its centre
+        # scene: the scene's box (its parser's: sparse points it read, else the cameras' reach);
+        # points: the box of its sparse points, triangulated from the training views when it
+        # has none (a tight box for captures whose cameras sit close together, as LLFF's)
+        box: Literal["scene", "points"] = "scene"
         # last-sample: the last sample takes the light that is left (NeRF), so far content and
         # sky live on the outer shell; a learned constant would rather explain the commonest
         # surface colour (a grey road) and drain its density.
@@ -130,6 +135,11 @@ class GridField(RayField):
         self.eval_chunk, self.train_chunk = c.chunk, c.train_chunk
         self.near, self.far = float(scene.near), float(scene.far)
         box = scene.scene_box.float()
+        if c.box == "points":
+            if scene.points is None or not len(scene.points):
+                raise ConfigError(f"field.box=points: scene {scene.name} has no sparse points "
+                                  f"({scene.points_source}); use field.box=scene")
+            box = points_box(scene.points)
         center, half = 0.5 * (box[0] + box[1]), (0.5 * (box[1] - box[0]) * c.box_scale).clamp_min(1e-3)
         self.register_buffer("box_center", center, persistent=False)
         self.register_buffer("box_half", half, persistent=False)
