@@ -69,6 +69,12 @@ class SceneData:
         return (hom @ torch.linalg.inv(self.transform).T.to(points))[:, :3]
 
 
+def points_box(points: Tensor) -> Tensor:
+    """(2, 3) bounds of the content from sparse points: their 1 % and 99 % quantiles per axis
+    (a few stray triangulations must not stretch the box)."""
+    return torch.stack([points.float().quantile(0.01, 0), points.float().quantile(0.99, 0)])
+
+
 def split_indices(n: int, every: int = 8, explicit: list[int] | None = None) -> tuple[list[int], list[int]]:
     """Train / held-out split: every ``every``-th view held out (0: none), or an explicit list."""
     if explicit is not None:

@@ -10,10 +10,10 @@ import torch
 from rainyscape import config
 from rainyscape.cameras import Window
 from rainyscape.components import TrainState
-from rainyscape.dataparsers.base import points_box
 from rainyscape.errors import ConfigError
 from rainyscape.fields.grid import GridField, growth_resolution
 from rainyscape.fields.nerf_mlp import NerfMLP, NerfMLPField
+from rainyscape.scene import points_box
 from rainyscape.workflow import wants_sparse_points
 
 SMALL_MLP = dict(depth=4, width=64, skips=(2,), samples_coarse=16, samples_fine=16, train_chunk=0)

@@ -12,7 +12,7 @@ from torch import Tensor
 from rainyscape.cameras import Cameras
 from rainyscape.config.schema import bounded
 from rainyscape.errors import DataError, warn
-from rainyscape.scene import SceneData, apply_normalization, normalize_poses, split_indices
+from rainyscape.scene import SceneData, apply_normalization, normalize_poses, points_box, split_indices
 
 MIN_IMAGE_SIDE = 4  # smaller images are refused (nothing sensible trains on them)
 
@@ -110,12 +110,6 @@ def downscale_images(images: Tensor, factor: int) -> Tensor:
     x = images[:, : h2 * factor, : w2 * factor].permute(0, 3, 1, 2).float()
     x = F.avg_pool2d(x, factor)
     return x.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).contiguous()
-
-
-def points_box(points: Tensor) -> Tensor:
-    """(2, 3) bounds of the content from sparse points: their 1 % and 99 % quantiles per axis
-    (a few stray triangulations must not stretch the box)."""
-    return torch.stack([points.float().quantile(0.01, 0), points.float().quantile(0.99, 0)])
 
 
 def assemble_scene(config: CommonParserConfig, *, name: str, source: Path, images: Tensor,

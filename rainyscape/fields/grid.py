@@ -27,7 +27,6 @@ from torch import Tensor, nn
 
 from rainyscape.components import Callback, ParamGroup, TrainState
 from rainyscape.config.schema import bounded
-from rainyscape.dataparsers.base import points_box
 from rainyscape.errors import ConfigError
 from rainyscape.fields.contraction import contract, contraction_stretch
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
@@ -37,7 +36,7 @@ from rainyscape.fields.optim_state import replace_adam_param
 from rainyscape.fields.ray_field import RayField
 from rainyscape.fields.rendering import FAR_DELTA, compositing_weights, sample_deltas
 from rainyscape.fields.sampling import ray_box_intersection
-from rainyscape.scene import SceneData
+from rainyscape.scene import SceneData, points_box
 
 DENSITY_GROUP, COLOR_GROUP, NETWORK_GROUP = "field_density", "field_color", "field_network"
 
