@@ -173,12 +173,15 @@ class VMTables(nn.Module):
         """All features (P, 3 C), mode-major, at points (P, 3) in [-1, 1]."""
         if vm_cpp.usable(self.plane, x):
             return vm_cpp.vm_lookup(self.plane, self.line, x, self.layout())
-        return self.forward(x).permute(1, 0, 2).reshape(x.shape[0], -1)
+        return self._lookup_modes(x).transpose(0, 1).reshape(x.shape[0], -1)
 
     def forward(self, x: Tensor) -> Tensor:
-        if vm_cpp.usable(self.plane, x):
-            return vm_cpp.vm_lookup(self.plane, self.line, x, self.layout()).view(
-                x.shape[0], 3, self.components).transpose(0, 1)
+        if vm_cpp.usable(self.plane, x):  # (P, 3 C) viewed as (3, P, C): no copy
+            return self.features(x).view(x.shape[0], 3, self.components).transpose(0, 1)
+        return self._lookup_modes(x)
+
+    def _lookup_modes(self, x: Tensor) -> Tensor:
+        """The ``embedding_bag`` lookup: (3, P, C)."""
         pi, pw, li, lw = [], [], [], []
         for m, (a, b, c) in enumerate(MODES):
             h, w = self.plane_shapes[m]
