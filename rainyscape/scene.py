@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 
 import torch
@@ -67,6 +69,21 @@ class SceneData:
         """Map normalised world points (P, 3) back to the input's world frame."""
         hom = torch.cat([points / self.scale, torch.ones_like(points[:, :1])], -1)
         return (hom @ torch.linalg.inv(self.transform).T.to(points))[:, :3]
+
+
+# A forward-facing capture (LLFF, a camera array): every camera looks within this angle of
+# the cameras' mean direction; NeRF fields then work in its NDC
+FORWARD_FACING_DEG = 35.0
+
+
+def faces_forward(c2w: Tensor) -> bool:
+    """Whether cameras (N, 4, 4; OpenCV: +z looks forward) all look within
+    FORWARD_FACING_DEG of their mean direction."""
+    forward = c2w[:, :3, 2].double()
+    mean = forward.mean(0)
+    if float(mean.norm()) < 1e-9:
+        return False
+    return bool((forward @ (mean / mean.norm())).min() > math.cos(math.radians(FORWARD_FACING_DEG)))
 
 
 def points_box(points: Tensor) -> Tensor:

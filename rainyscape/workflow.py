@@ -36,19 +36,22 @@ def with_scene(cfg: PipelineConfig) -> PipelineConfig:
     return dataclasses.replace(cfg, data=str(ensure_demo_scene()))
 
 
-def wants_sparse_points(cfg: PipelineConfig) -> bool:
+def wants_sparse_points(cfg: PipelineConfig, forward_facing: bool = False) -> bool:
     """Whether the run's field needs the scene's sparse points: it starts from them (the
-    Gaussian field's ``init`` is ``auto`` or ``points``; ``random`` or ``frustum`` do not) or
-    bounds its grids by them (the grid field's ``box=points``)."""
+    Gaussian field's ``init`` is ``auto`` or ``points``; ``random`` or ``frustum`` do not), or
+    bounds its grids by them (the grid fields' ``box=points``, and their NDC layout, whose near
+    plane sits in front of the nearest points; ``auto`` is NDC on forward-facing scenes)."""
     options = cfg.field.options
-    return getattr(options, "init", None) in ("auto", "points") or getattr(options, "box", None) == "points"
+    layout = getattr(options, "layout", None)
+    ndc = layout == "ndc" or (layout == "auto" and forward_facing)
+    return getattr(options, "init", None) in ("auto", "points") or getattr(options, "box", None) == "points" or ndc
 
 
 def complete_scene(cfg: PipelineConfig, scene: SceneData) -> SceneData:
     """The scene as the run's field needs it (rs-train, rs-eval, rs-render and rs-export all
     build the field from it): for a field that starts from or is bounded by sparse points,
     points triangulated from the training views (cached) when the scene has none."""
-    if not wants_sparse_points(cfg) or (scene.points is not None and len(scene.points)):
+    if not wants_sparse_points(cfg, scene.forward_facing) or (scene.points is not None and len(scene.points)):
         return scene
     if len(scene.train_indices) < 2:
         return scene

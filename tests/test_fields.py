@@ -13,8 +13,10 @@ from rainyscape.components import TrainState
 from rainyscape.errors import ConfigError
 from rainyscape.fields.grid import GridField, growth_resolution
 from rainyscape.fields.nerf_mlp import NerfMLP, NerfMLPField
-from rainyscape.scene import points_box
+from rainyscape.scene import faces_forward, points_box
 from rainyscape.workflow import wants_sparse_points
+
+from _scenes import forward_facing_scene
 
 SMALL_MLP = dict(depth=4, width=64, skips=(2,), samples_coarse=16, samples_fine=16, train_chunk=0)
 SMALL_GRID = dict(resolution_init=8, resolution_final=24, growth_at=(0.2, 0.5), occupancy_from=0.3,
@@ -172,13 +174,56 @@ def test_points_box_bounds_the_grids_by_the_sparse_points(tiny_scene):
     points = torch.randn(500, 3, generator=g) * torch.tensor([0.2, 0.1, 0.3]) + torch.tensor([0.1, 0.0, -0.2])
     field = _field("grid", dataclasses.replace(tiny_scene, points=points), box="points")
     lo, hi = points_box(points)
-    assert torch.allclose(field.box_center, (lo + hi) / 2) and torch.allclose(field.box_half, (hi - lo) / 2)
-    assert (field.box_half < (tiny_scene.scene_box[1] - tiny_scene.scene_box[0]) / 2).all()
+    assert torch.allclose(field.space.box_center, (lo + hi) / 2) and torch.allclose(field.space.box_half, (hi - lo) / 2)
+    assert (field.space.box_half < (tiny_scene.scene_box[1] - tiny_scene.scene_box[0]) / 2).all()
     with pytest.raises(ConfigError, match="field.box=points"):
         _field("grid", dataclasses.replace(tiny_scene, points=None), box="points")
     # rs-train, rs-eval, rs-render and rs-export triangulate points for it when a scene has none
     assert wants_sparse_points(config.method_config("nerf", ["field.box=points"]))
     assert not wants_sparse_points(config.method_config("nerf"))
+    # ... and for the NDC layout (auto: on forward-facing captures), whose near plane they set
+    assert wants_sparse_points(config.method_config("nerf"), forward_facing=True)
+    assert not wants_sparse_points(config.method_config("nerf", ["field.layout=contract"]), forward_facing=True)
+
+
+def test_faces_forward_tells_camera_arrays_from_orbits(tiny_scene):
+    assert faces_forward(forward_facing_scene().cameras.c2w)
+    ring = []
+    for a in torch.linspace(0, 2 * torch.pi, 9)[:-1]:  # eight cameras around the origin, looking in
+        eye = torch.stack([4 * torch.cos(a), torch.tensor(0.0), 4 * torch.sin(a)])
+        fwd = -eye / eye.norm()
+        right = torch.linalg.cross(fwd, torch.tensor([0.0, 1.0, 0.0]))
+        c2w = torch.eye(4)
+        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, torch.linalg.cross(fwd, right), fwd, eye
+        ring.append(c2w)
+    assert not faces_forward(torch.stack(ring))
+    assert not faces_forward(tiny_scene.cameras.c2w)  # the simulator's 3 x 4 street array spans 50 degrees
+
+
+def test_grid_works_in_ndc_on_forward_facing_captures():
+    """A wall 4 units ahead of a camera array: the grid field lays its cube out in NDC, with
+    the near plane at 3/4 of the points' depth, and renders the wall at its depth."""
+    g = torch.Generator().manual_seed(0)
+    wall = torch.cat([torch.rand(400, 2, generator=g) * 4 - 2, torch.full((400, 1), 4.0)], 1)
+    scene = forward_facing_scene(points=wall)
+    field = GridField(GridField.Config(**{**SMALL_GRID, "resolution_init": 64, "resolution_final": 64},
+                                       density_grid="dense"), scene)
+    assert field.layout == "ndc" and field.space.near == pytest.approx(3.0, rel=1e-3)
+    # NDC texels keep their pixel footprint: the lattice stops at about one texel per pixel
+    assert GridField(GridField.Config(resolution_final=512), scene).final_resolution == pytest.approx(
+        32 * float(field.space.extent().prod()) ** (1 / 3), abs=1)
+    assert GridField(GridField.Config(**SMALL_GRID, layout="contract"), scene).layout == "contract"
+    with torch.no_grad():  # opaque from the wall's NDC depth on, empty in front of it
+        grid = field.density_grid.grid  # (1, 1, nz, ny, nx)
+        z_ndc = 1.0 - 2.0 * field.space.near / 4.0
+        g_wall = (z_ndc - float(field.space.box_center[2])) / float(field.space.box_half[2])
+        gz = torch.linspace(-1, 1, grid.shape[2])
+        grid.copy_(torch.where(gz >= g_wall, 10.0, -20.0).view(1, 1, -1, 1, 1).expand_as(grid))
+    cams, window = _full(scene, [0, 4])
+    with torch.no_grad():
+        out = field.eval().render(cams, window)
+    assert torch.all(out.acc > 0.99)
+    assert (out.depth - 4.0).abs().max() < 0.3  # a sample step at that depth is about 0.2
 
 
 def test_occupancy_skips_empty_space_without_changing_the_image(tiny_scene):

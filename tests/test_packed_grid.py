@@ -11,10 +11,11 @@ import pytest
 import torch
 from torch import nn
 
-from rainyscape.cameras import Cameras, Window
+from rainyscape.cameras import Window
 from rainyscape.fields.packed_grid import PackedGridField
 from rainyscape.fields.grid_encodings import Encoding
-from rainyscape.scene import SceneData
+
+from _scenes import forward_facing_scene
 
 SIGMA, COLOR = 2.0, torch.tensor([0.2, 0.6, 0.9])
 
@@ -154,23 +155,9 @@ def test_distortion_loss_is_reported_in_training_only(tiny_scene):
         assert "distortion" not in field.eval().render(cams, Window.full(cams)).extras
 
 
-def _forward_facing_scene() -> SceneData:
-    """Six cameras on a small plane looking down +z (OpenCV), content 2 to 8 units ahead."""
-    xs = torch.tensor([-0.2, 0.0, 0.2, -0.2, 0.0, 0.2])
-    ys = torch.tensor([-0.1, -0.1, -0.1, 0.1, 0.1, 0.1])
-    c2w = torch.eye(4).repeat(6, 1, 1)
-    c2w[:, 0, 3], c2w[:, 1, 3] = xs, ys
-    cams = Cameras(c2w, torch.full((6,), 30.0), torch.full((6,), 30.0), torch.full((6,), 16.0),
-                   torch.full((6,), 12.0), 32, 24)
-    return SceneData(name="ff", images=torch.zeros(6, 24, 32, 3, dtype=torch.uint8), cameras=cams,
-                     image_names=[f"{i}.png" for i in range(6)], train_indices=[0, 1, 2, 3, 4],
-                     eval_indices=[5], near=1.0, far=8.0, scene_box=torch.tensor([[-3.0] * 3, [3.0] * 3]),
-                     forward_facing=True)
-
-
 def test_layouts_follow_the_capture(tiny_scene):
     assert PackedGridField(PackedGridField.Config(), tiny_scene).layout == "contract"
-    scene = _forward_facing_scene()
+    scene = forward_facing_scene()
     field = PackedGridField(PackedGridField.Config(resolution_init=8, resolution_final=8, occupancy_resolution=8), scene)
     assert field.layout == "ndc"
     # every training pixel's ray, from the near plane to infinity, stays inside the grid cube

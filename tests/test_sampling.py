@@ -6,7 +6,6 @@ from __future__ import annotations
 import pytest
 import torch
 
-from rainyscape.fields.contraction import contract, contraction_stretch
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
 from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
 from rainyscape.fields.sampling import ray_box_intersection, sample_pdf, stratified_samples
@@ -68,29 +67,6 @@ def test_ray_box_intersection_lands_on_the_faces():
     away = torch.tensor([[0.0, 1.0, 0.0]]).expand(256, -1)  # up from above the box: misses
     entry, exit_ = ray_box_intersection(origins, away, box)
     assert torch.all(entry >= exit_)
-
-
-def test_contraction_keeps_the_box_and_squeezes_the_rest_into_the_shell():
-    torch.manual_seed(0)
-    inside = torch.rand(100, 3) * 2 - 1
-    assert torch.equal(contract(inside), inside)
-    far = torch.randn(1000, 3) * 50
-    c = contract(far)
-    norm = c.abs().amax(-1)
-    assert torch.all((norm > 1.0) & (norm < 2.0))
-    assert contract(torch.tensor([[1e9, 0.0, 0.0]]))[0, 0].item() == pytest.approx(2.0)
-    # Directions are kept and farther points go farther out.
-    assert torch.allclose(torch.nn.functional.normalize(c, dim=-1), torch.nn.functional.normalize(far, dim=-1), atol=1e-5)
-    assert torch.all(contract(far * 2).abs().amax(-1) > norm)
-
-
-def test_contraction_stretch_matches_the_numerical_derivative():
-    for r in (0.5, 1.5, 3.0, 10.0):
-        x = torch.tensor([[r, 0.3 * r, -0.2 * r]], dtype=torch.float64)
-        eps = 1e-6
-        dc = contract(x * (1 + eps)) - contract(x)
-        stretch = (x * eps).norm() / dc.norm()
-        assert contraction_stretch(contract(x)).item() == pytest.approx(stretch.item(), rel=1e-4)
 
 
 def test_occupancy_grid_looks_up_the_cell_of_a_point():

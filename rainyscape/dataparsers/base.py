@@ -12,7 +12,8 @@ from torch import Tensor
 from rainyscape.cameras import Cameras
 from rainyscape.config.schema import bounded
 from rainyscape.errors import DataError, warn
-from rainyscape.scene import SceneData, apply_normalization, normalize_poses, points_box, split_indices
+from rainyscape.scene import (SceneData, apply_normalization, faces_forward, normalize_poses, points_box,
+                              split_indices)
 
 MIN_IMAGE_SIDE = 4  # smaller images are refused (nothing sensible trains on them)
 
@@ -117,7 +118,7 @@ def assemble_scene(config: CommonParserConfig, *, name: str, source: Path, image
                    depths: Tensor | None = None, rain_layers: Tensor | None = None,
                    points: Tensor | None = None, point_colors: Tensor | None = None,
                    points_source: str = "", near: float | None = None, far: float | None = None,
-                   forward_facing: bool = False, metadata: dict | None = None,
+                   forward_facing: bool | None = None, metadata: dict | None = None,
                    image_files: list[Path] | None = None,
                    heldout: tuple[list[str], str] | None = None) -> SceneData:
     """Apply downscale, world normalisation and the held-out split; return SceneData.
@@ -125,6 +126,7 @@ def assemble_scene(config: CommonParserConfig, *, name: str, source: Path, image
     ``cameras`` must already be in the OpenCV convention. ``depths`` are z-depths in the
     input's world units; ``near`` / ``far`` likewise (estimated from cameras when None).
     ``points_source``: where ``points`` come from (SceneData.points_source).
+    ``forward_facing``: None: from the cameras (``scene.faces_forward``).
     ``image_files``: the image files (held-out lists may name them by path). ``heldout``:
     the format's own held-out list (entries, where they come from), used unless
     ``holdout_file`` is set.
@@ -195,5 +197,6 @@ def assemble_scene(config: CommonParserConfig, *, name: str, source: Path, image
         scene_box=box.float(), clean_images=clean_images, depths=depths,
         rain_layers=rain_layers, points=points, point_colors=point_colors,
         points_source=(points_source or "dataparser") if points is not None and len(points) else "none",
-        forward_facing=forward_facing, transform=transform, scale=scale, source=str(source),
+        forward_facing=faces_forward(cameras.c2w) if forward_facing is None else forward_facing,
+        transform=transform, scale=scale, source=str(source),
         metadata=metadata or {})

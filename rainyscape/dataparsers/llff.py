@@ -161,12 +161,10 @@ class LLFFParser(DataParser):
             from dataclasses import replace
 
             scene_cfg = replace(cfg, downscale=max(1, int(cfg.downscale)) // prescaled)
-        forward = rot_cv[:, :, 2]
-        facing = bool((forward @ forward.mean(0) / np.linalg.norm(forward.mean(0))).min() > np.cos(np.radians(35)))
         return assemble_scene(
             scene_cfg, name=root.resolve().name, source=root, images=images, cameras=cameras,
             image_names=[p.name for p in files], clean_images=clean,
-            near=float(bounds[:, 0].min()), far=float(bounds[:, 1].max()), forward_facing=facing,
+            near=float(bounds[:, 0].min()), far=float(bounds[:, 1].max()),
             image_files=files,
             metadata={"format": "llff", "pose_convention": convention, "images": str(image_dir)})
 

@@ -1,15 +1,18 @@
 """The fast CPU field: explicit grids + tiny MLP, grown coarse-to-fine.
 
-Space is contracted into the cube [-2, 2]^3: the scene box maps to [-1, 1]^3 and everything
-out to infinity to the shell around it. A density grid (TensoRF vector-matrix factorised by
-default, or dense) and a TensoRF-style factorised colour grid for a
-tiny MLP cover that cube, with per-axis resolutions in proportion to the box so voxels are
-about cubic in the world.
+Where the grids live is the field's ``GridSpace`` (fields/space.py): for most captures space
+is contracted (the content's box is the inner half of the grid cube, everything out to
+infinity the shell around it); for forward-facing ones (LLFF, camera arrays) the grid cube is
+NeRF's NDC box of the training frustums, so its texels follow the image's pixels at every
+depth. A density grid (TensoRF vector-matrix factorised by default, or dense) and a
+TensoRF-style factorised colour grid for a tiny MLP cover that cube, with per-axis
+resolutions in proportion to its extent so voxels are about cubic.
 
-Samples are evenly spaced (in voxels) up to where the ray leaves the scene box, then evenly
-in inverse distance out to ``far`` (evenly in the contracted coordinate). An occupancy grid
-skips empty space; colour is computed only where a sample's weight matters. Light that
-is left at the last sample ends there (as in NeRF): far content and sky live on the shell.
+Samples are evenly spaced (in voxels) along the linear part of a ray (to where it leaves the
+content's box; all of it in NDC), then, when contracted, evenly in inverse distance out to
+``far``. An occupancy grid skips empty space; colour is computed only where a sample's weight
+matters. Light that is left at the last sample ends there (as in NeRF): far content and sky
+live on the shell (the NDC box's far face).
 
 The grids start coarse and grow on a schedule: an explicit grid has no spectral bias of its
 own, so its resolution is what makes it fit low frequencies first (the paper's prior).
@@ -28,14 +31,13 @@ from torch import Tensor, nn
 from rainyscape.components import Callback, ParamGroup, TrainState
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
-from rainyscape.fields.contraction import contract, contraction_stretch
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
 from rainyscape.fields.feature_grids import DenseGrid, VMTables
 from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
 from rainyscape.fields.optim_state import replace_adam_param
 from rainyscape.fields.ray_field import RayField
 from rainyscape.fields.rendering import FAR_DELTA, compositing_weights, sample_deltas
-from rainyscape.fields.sampling import ray_box_intersection
+from rainyscape.fields.space import GridSpace, SampleRays
 from rainyscape.scene import SceneData, points_box
 
 DENSITY_GROUP, COLOR_GROUP, NETWORK_GROUP = "field_density", "field_color", "field_network"
@@ -56,6 +58,14 @@ def axis_sizes(resolution: int, extent: Tensor) -> tuple[int, int, int]:
     """Lattice points per axis: ``resolution``^3 in all, shared in proportion to ``extent``."""
     ratio = extent / extent.prod() ** (1.0 / 3.0)
     return tuple(max(2, int(round(resolution * float(r)))) for r in ratio)
+
+
+def pixel_matched_resolution(extent: Tensor, width: int, height: int) -> int:
+    """The lattice (cube root of its size) with about one texel per image pixel over an NDC
+    cube of half sizes ``extent`` (3,): the image spans NDC [-1, 1] on both image axes, so
+    an axis of half size h needs h x pixels texels, and axis_sizes shares the lattice in
+    proportion to the half sizes."""
+    return int(round(max(width, height) * float(extent.prod()) ** (1.0 / 3.0)))
 
 
 class ColorNet(nn.Module):
@@ -83,7 +93,7 @@ class GridField(RayField):
         resolution_init: int = bounded(16, 2, 1024)  # cube root of the lattice size of the contracted cube at the start ...
         # 512: colour texels about a pixel wide on the cpu set's 128 px views (the old 128 lost
         # 3.8 dB on their training views; docs/benchmarks.md, issue 27)
-        resolution_final: int = bounded(512, 2, 1024)  # ... and after the last growth
+        resolution_final: int = bounded(512, 2, 1024)  # ... and after the last growth (NDC: at most a texel per pixel)
         growth_at: tuple[float, ...] = bounded((0.05, 0.1, 0.2, 0.3, 0.4), 0.0, 1.0)  # fractions of the run where it grows
         # vm: measured 1.1 dB better after 300 steps and twice as fast per step as dense (docs/benchmarks.md)
         density_grid: Literal["dense", "vm"] = "vm"
@@ -101,6 +111,9 @@ class GridField(RayField):
         # points: the box of its sparse points, triangulated from the training views when it
         # has none (a tight box for captures whose cameras sit close together, as LLFF's)
         box: Literal["scene", "points"] = "scene"
+        # auto: ndc for forward-facing captures (their cameras look within 35 degrees of one
+        # direction), else contract; box: the content's box only, nothing outside it
+        layout: Literal["auto", "contract", "ndc", "box"] = "auto"
         # last-sample: the last sample takes the light that is left (NeRF), so far content and
         # sky live on the outer shell; a learned constant would rather explain the commonest
         # surface colour (a grey road) and drain its density.
@@ -132,18 +145,23 @@ class GridField(RayField):
         if not 0 < scene.near < scene.far:
             raise ConfigError(f"scene {scene.name}: need 0 < near < far, got {scene.near}, {scene.far}")
         self.eval_chunk, self.train_chunk = c.chunk, c.train_chunk
-        self.near, self.far = float(scene.near), float(scene.far)
-        box = scene.scene_box.float()
+        box = None
         if c.box == "points":
             if scene.points is None or not len(scene.points):
                 raise ConfigError(f"field.box=points: scene {scene.name} has no sparse points "
                                   f"({scene.points_source}); use field.box=scene")
             box = points_box(scene.points)
-        center, half = 0.5 * (box[0] + box[1]), (0.5 * (box[1] - box[0]) * c.box_scale).clamp_min(1e-3)
-        self.register_buffer("box_center", center, persistent=False)
-        self.register_buffer("box_half", half, persistent=False)
+        layout = c.layout if c.layout != "auto" else ("ndc" if scene.forward_facing else "contract")
+        self.space = GridSpace(scene, layout, inner=0.5, box_scale=c.box_scale, box=box)
+        self.final_resolution = c.resolution_final
+        if layout == "ndc":
+            # NDC texels keep their pixel footprint at every depth: finer than the pixels,
+            # they only add parameters that the views pin down more slowly (fern: 256^3 beat
+            # 384^3 and 512^3 at the CPU budget, docs/benchmarks.md)
+            pixels = pixel_matched_resolution(self.space.extent().cpu(), scene.width, scene.height)
+            self.final_resolution = max(c.resolution_init, min(c.resolution_final, pixels))
         self.register_buffer("grid_resolution", torch.tensor(c.resolution_init))
-        sizes = axis_sizes(c.resolution_init, half)
+        sizes = axis_sizes(c.resolution_init, self.space.extent().cpu())
         self.density_grid = (DenseGrid(1, sizes) if c.density_grid == "dense"
                              else VMTables(c.density_components, sizes))
         self.color_grid = VMTables(c.color_components, sizes)
@@ -162,78 +180,85 @@ class GridField(RayField):
         the occupancy grid."""
         return {"grid_resolution": self.resolution, "occupied_fraction": round(self.occupancy.fraction(), 4)}
 
+    @property
+    def layout(self) -> str:
+        return self.space.layout
+
     def step_size(self) -> float:
-        """Sample spacing in world units inside the scene box."""
-        sizes = torch.tensor(axis_sizes(self.resolution, self.box_half.cpu()), dtype=torch.float32)
-        voxel = 4.0 * self.box_half.cpu() / (sizes - 1)  # the lattice spans the contracted [-2, 2]
+        """Sample spacing in sampling-space units (world, or NDC) on the linear part of a ray."""
+        sizes = torch.tensor(axis_sizes(self.resolution, self.space.extent().cpu()), dtype=torch.float32)
+        voxel = 2.0 * self.space.box_half.cpu() / (self.space.inner * (sizes - 1))
         return self.config.step_ratio * float(voxel.mean())
 
     def _sigma(self, grid_points: Tensor) -> Tensor:
-        """Density at points of the grids' [-1, 1]^3 (the contracted cube halved)."""
+        """Density at points of the grid cube [-1, 1]^3."""
         raw = self.density_grid.features(grid_points).sum(-1)
         return self.config.density_scale * F.softplus(raw + self.config.density_shift)
 
     def density(self, points: Tensor) -> Tensor:
-        """Volume density (P,) at world points (P, 3) of the normalised scene (for export)."""
-        return self._sigma(contract((points - self.box_center) / self.box_half) / 2.0)
+        """Volume density (P,) at world points (P, 3) of the normalised scene (for export);
+        zero outside the grid cube (NDC and box layouts)."""
+        g = self.space.world_to_grid(points)
+        sigma = self._sigma(g.clamp(-1.0, 1.0))
+        return torch.where((g.abs() <= 1.0).all(-1), sigma, torch.zeros_like(sigma))
 
-    def _samples(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
-        """Sample distances (R, N) and which are real (R, N), for box-normalised rays."""
-        step = self.step_size()
-        unit_box = torch.tensor([[-1.0] * 3, [1.0] * 3], device=o.device)
-        entry, exit_ = ray_box_intersection(o, d, unit_box)
-        # Past the box exit (or the closest approach to it, for rays that miss) samples go
-        # evenly in inverse distance: that is evenly in the contracted coordinate.
-        closest = -(o * d).sum(-1) / (d * d).sum(-1)
-        split = torch.where(exit_ > entry, exit_, closest).clamp(self.near, self.far)
-        n_lin = max(1, math.ceil(float((split.max() - self.near) / step)))
-        n_far = max(1, math.ceil((self.resolution - 1) / 4.0 / self.config.step_ratio))
-        shape = (o.shape[0], 1)
-        jitter = (torch.rand(shape, device=o.device) if self.training
-                  else torch.full(shape, 0.5, device=o.device))
-        t_lin = self.near + (torch.arange(n_lin, device=o.device) + jitter) * step
-        valid = t_lin < split[:, None]
-        s = (torch.arange(n_far, device=o.device) + jitter) / n_far
-        t_far = 1.0 / ((1.0 - s) / split[:, None] + s / self.far)
-        # Padding sits at the first far sample: zero-length intervals, so a ray renders the
-        # same whatever the longest ray of its batch (chunking does not change images).
-        t_lin = torch.where(valid, t_lin, t_far[:, :1])
-        t = torch.cat([t_lin, t_far], -1)
-        return t, torch.cat([valid, torch.ones_like(t_far, dtype=torch.bool)], -1)
+    def _samples(self, rays: SampleRays) -> tuple[Tensor, Tensor]:
+        """Sample parameters t (R, N) and which are real (R, N): evenly spaced on the linear
+        part [t_a, t_b]; then, contracted, evenly in inverse distance out to t_far; else one
+        last sample at t_b that takes the light that is left."""
+        step = self.step_size() / rays.length  # t moves |d| sampling-space units per unit
+        device = rays.t_a.device
+        n_lin = max(1, math.ceil(float(((rays.t_b - rays.t_a) / step).max())))
+        shape = (rays.t_a.shape[0], 1)
+        jitter = (torch.rand(shape, device=device) if self.training
+                  else torch.full(shape, 0.5, device=device))
+        t_lin = rays.t_a[:, None] + (torch.arange(n_lin, device=device) + jitter) * step[:, None]
+        valid = t_lin < rays.t_b[:, None]
+        if self.layout == "contract":
+            # Past the box, samples go evenly in inverse distance: evenly in the shell.
+            n_far = max(1, math.ceil((self.resolution - 1) / 4.0 / self.config.step_ratio))
+            u = (torch.arange(n_far, device=device) + jitter) / n_far
+            t_end = 1.0 / ((1.0 - u) / rays.t_b[:, None] + u / rays.t_far[:, None])
+        else:
+            t_end = rays.t_b[:, None]
+        # Padding sits at the first sample after the linear part: zero-length intervals, so a
+        # ray renders the same whatever the longest ray of its batch (chunking does not change
+        # images).
+        t_lin = torch.where(valid, t_lin, t_end[:, :1])
+        return torch.cat([t_lin, t_end], -1), torch.cat([valid, torch.ones_like(t_end, dtype=torch.bool)], -1)
 
     # ----------------------------------------------------------------- rendering
 
     def render_rays(self, origins: Tensor, directions: Tensor, z_scale: Tensor) -> dict[str, Tensor]:
-        # Distances stay in world units; positions are measured in half box sizes.
-        o = (origins - self.box_center) / self.box_half
-        d = directions / self.box_half
-        t, valid = self._samples(o, d)
+        rays = self.space.sample_rays(origins, directions)
+        t, valid = self._samples(rays)
         last = FAR_DELTA if self.config.background == "last-sample" else 0.0
-        deltas = sample_deltas(t, last=last).clamp_min(0.0)
-        pts = contract(o[:, None] + t[..., None] * d[:, None])  # (R, N, 3) in [-2, 2]
-        live = valid & self.occupancy.lookup(pts)
+        deltas = (sample_deltas(t, last=last) * rays.length[:, None]).clamp_min(0.0)
+        g = self.space.to_grid(rays.origins[:, None] + t[..., None] * rays.directions[:, None])
+        live = valid & self.occupancy.lookup(2.0 * g)  # the occupancy grid spans [-2, 2]^3
         if self.config.background == "last-sample":
             live[:, -1] = True  # it must stay able to take the light that is left
         idx = live.nonzero(as_tuple=True)
         zeros = torch.zeros_like(t)
         with torch.no_grad():  # march without gradients first: what light reaches each sample
-            sigma = zeros.index_put(idx, self._sigma(pts[idx] / 2.0))
+            sigma = zeros.index_put(idx, self._sigma(g[idx]))
             _, transmittance = compositing_weights(sigma, deltas)
         if torch.is_grad_enabled():
             # Only samples that light still reaches get gradients (early ray termination).
             idx = (live & (transmittance > self.config.transmittance_threshold)).nonzero(as_tuple=True)
-            sigma = zeros.index_put(idx, self._sigma(pts[idx] / 2.0))
+            sigma = zeros.index_put(idx, self._sigma(g[idx]))
         weights, _ = compositing_weights(sigma, deltas)
         # Colour only where it shows; composited sparsely, straight into the rays.
         shade = (weights.detach() >= self.config.weight_threshold).nonzero(as_tuple=True)
-        feats = self.basis(self.color_grid.features(pts[shade] / 2.0))
+        feats = self.basis(self.color_grid.features(g[shade]))
         rgb_samples = self.color_net(feats, directions[shade[0]])
         rgb = torch.zeros_like(origins).index_add(0, shade[0], weights[shade][:, None] * rgb_samples)
         acc = weights.sum(-1)
         rest = (1.0 - acc).clamp_min(0.0)
         if self.config.background == "white":
             rgb = rgb + rest[:, None]
-        depth = ((weights * t).sum(-1) + rest * self.far) * z_scale
+        distance = self.space.distance(rays, t)
+        depth = ((weights * distance).sum(-1) + rest * self.space.far) * z_scale
         return {"rgb": rgb, "depth": depth, "acc": acc}
 
     # -------------------------------------------------------------- optimisation
@@ -259,7 +284,7 @@ class GridField(RayField):
     @torch.no_grad()
     def grow(self, resolution: int, optimizers: dict[str, torch.optim.Optimizer] | None = None) -> None:
         """Resample the grids to ``resolution``; Adam's moments are resampled alike."""
-        sizes = axis_sizes(resolution, self.box_half.cpu())
+        sizes = axis_sizes(resolution, self.space.extent().cpu())
         optimizers = optimizers or {}
         for name, grid in ((DENSITY_GROUP, self.density_grid), (COLOR_GROUP, self.color_grid)):
             for old, new, remap in grid.resize(sizes):
@@ -270,9 +295,11 @@ class GridField(RayField):
     @torch.no_grad()
     def update_occupancy(self) -> None:
         """Mark cells whose density would make one marching step at least threshold-opaque."""
-        centers = cell_centers(self.occupancy.resolution, device=self.box_half.device)
-        sigma = self._sigma(centers.reshape(-1, 3) / 2.0).reshape(centers.shape[:-1])
-        alpha = 1.0 - torch.exp(-sigma * self.step_size() * contraction_stretch(centers))
+        g = cell_centers(self.occupancy.resolution, device=self.space.box_half.device) / 2.0
+        sigma = self._sigma(g.reshape(-1, 3)).reshape(g.shape[:-1])
+        # one step's sampling-space length in grid units, stretched where the grid is contracted
+        step_grid = self.step_size() * self.space.inner / float(self.space.box_half.mean())
+        alpha = 1.0 - torch.exp(-sigma * step_grid * self.space.length_per_grid(g))
         self.occupancy.set(occupied_cells(alpha, self.config.occupancy_threshold))
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
@@ -284,8 +311,8 @@ class GridField(RayField):
 
 
 class GridGrowth(Callback):
-    """Grows a grid field's lattice on the schedule (``config.resolution_init`` ->
-    ``resolution_final`` at ``growth_at``; ``grid`` and ``packed-grid``); the resolution
+    """Grows a grid field's lattice on the schedule (``config.resolution_init`` -> the field's
+    ``final_resolution`` at ``growth_at``; ``grid`` and ``packed-grid``); the resolution
     follows from the step, so resuming works."""
 
     def __init__(self, field: nn.Module):
@@ -294,7 +321,7 @@ class GridGrowth(Callback):
     def before_step(self, state: TrainState) -> None:
         c = self.field.config
         target = growth_resolution(state.step, state.max_iters, c.resolution_init,
-                                   c.resolution_final, tuple(c.growth_at))
+                                   self.field.final_resolution, tuple(c.growth_at))
         if target != self.field.resolution:
             self.field.grow(target, state.optimizers)
 

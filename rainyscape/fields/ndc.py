@@ -24,6 +24,24 @@ def average_pose(c2w: Tensor) -> Tensor:
     return out
 
 
+# NeRF's LLFF mode puts the NDC near plane at 3/4 of the nearest content's depth
+NEAR_SHARE = 0.75
+
+
+def ndc_near(frame: Tensor, points: Tensor | None, fallback: float) -> float:
+    """The NDC near plane of a capture seen from the reference camera ``frame`` (4x4): 3/4 of
+    the depth of its nearest sparse points (their 1 % quantile: a stray triangulation must not
+    pull it in), else of ``fallback`` (the scene's near bound). A plane too close wastes most
+    of NDC's depth range in front of the content (s = 1 - 2 near / z)."""
+    if points is None or not len(points):
+        return NEAR_SHARE * float(fallback)
+    depth = (points.float() - frame[:3, 3]) @ frame[:3, 2]
+    depth = depth[depth > 0]
+    if not len(depth):
+        return NEAR_SHARE * float(fallback)
+    return NEAR_SHARE * float(depth.quantile(0.01))
+
+
 def ndc_points(points: Tensor, scale_x: float, scale_y: float, near: float) -> Tensor:
     """NDC image (..., 3) of points (..., 3) in front of the reference camera."""
     z = points[..., 2].clamp_min(1e-6)

@@ -145,6 +145,10 @@ class PackedGridField(RayField):
     def layout(self) -> str:
         return self.space.layout
 
+    @property
+    def final_resolution(self) -> int:
+        return self.config.resolution_final
+
     def stats(self) -> dict[str, float]:
         """The lattice resolution (cube root), the occupied share of the occupancy grid and the
         samples per ray of the last render (evaluated, kept for gradients, shaded)."""

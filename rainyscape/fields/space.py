@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from rainyscape.fields.ndc import average_pose, ndc_rays, ndc_to_distance
+from rainyscape.fields.ndc import average_pose, ndc_near, ndc_rays, ndc_to_distance
 from rainyscape.fields.sampling import ray_box_intersection
 from rainyscape.scene import SceneData
 
@@ -66,7 +66,10 @@ class SampleRays:
 class GridSpace(nn.Module):
     """The layout of one scene (see the module docstring); all maps are pure tensor maths."""
 
-    def __init__(self, scene: SceneData, layout: str, inner: float = 0.5, box_scale: float = 1.0):
+    def __init__(self, scene: SceneData, layout: str, inner: float = 0.5, box_scale: float = 1.0,
+                 box: Tensor | None = None):
+        """``box`` (2, 3): the content's bounds for ``box`` and ``contract`` (default: the
+        scene's box)."""
         super().__init__()
         if layout not in LAYOUTS:
             raise ValueError(f"layout must be one of {LAYOUTS}, got {layout}")
@@ -75,12 +78,14 @@ class GridSpace(nn.Module):
         self.near, self.far = float(scene.near), float(scene.far)
         train = scene.train_indices or list(range(len(scene.cameras)))
         cams = scene.cameras[train]
-        self.register_buffer("ndc_frame", average_pose(cams.c2w.float()), persistent=False)
+        frame = average_pose(cams.c2w.float())
+        self.register_buffer("ndc_frame", frame, persistent=False)
         self.ndc_scale = (float(2 * cams.fx.mean() / cams.width), float(2 * cams.fy.mean() / cams.height))
         if layout == "ndc":
+            self.near = ndc_near(frame, scene.points, scene.near)
             center, half = self._ndc_box(scene, train)
         else:
-            box = scene.scene_box.float()
+            box = (scene.scene_box if box is None else box).float()
             center, half = 0.5 * (box[0] + box[1]), 0.5 * (box[1] - box[0]) * box_scale
         self.register_buffer("box_center", center, persistent=False)
         self.register_buffer("box_half", half.clamp_min(1e-3), persistent=False)
