@@ -12,6 +12,7 @@ from rainyscape.cameras import Window
 from rainyscape.components import TrainState
 from rainyscape.errors import ConfigError
 from rainyscape.fields.grid import GridField, growth_resolution
+from rainyscape.fields.ndc import ndc_near
 from rainyscape.fields.nerf_mlp import NerfMLP, NerfMLPField
 from rainyscape.scene import faces_forward, points_box
 from rainyscape.workflow import wants_sparse_points
@@ -209,6 +210,7 @@ def test_grid_works_in_ndc_on_forward_facing_captures():
     field = GridField(GridField.Config(**{**SMALL_GRID, "resolution_init": 64, "resolution_final": 64},
                                        density_grid="dense"), scene)
     assert field.layout == "ndc" and field.space.near == pytest.approx(3.0, rel=1e-3)
+    assert ndc_near(field.space.ndc_frame, None, 2.0) == pytest.approx(1.5)  # no points: 3/4 of the bound
     # NDC texels keep their pixel footprint: the lattice stops at about one texel per pixel
     assert GridField(GridField.Config(resolution_final=512), scene).final_resolution == pytest.approx(
         32 * float(field.space.extent().prod()) ** (1 / 3), abs=1)

@@ -18,7 +18,7 @@ from rainyscape.components import ParamGroup
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
-from rainyscape.fields.ndc import average_pose, ndc_points, ndc_rays, ndc_to_distance
+from rainyscape.fields.ndc import average_pose, ndc_near, ndc_points, ndc_rays, ndc_to_distance
 from rainyscape.fields.ray_field import RayField
 from rainyscape.fields.rendering import compositing_weights, composite, sample_deltas
 from rainyscape.fields.sampling import sample_pdf, stratified_samples
@@ -104,8 +104,10 @@ class NerfMLPField(RayField):
         self.use_ndc = c.ndc == "on" or (c.ndc == "auto" and scene.forward_facing)
         # NDC is defined in the frame of the average training camera (LLFF's recentring).
         cams = scene.cameras[scene.train_indices or list(range(len(scene.cameras)))]
-        self.register_buffer("ndc_frame", average_pose(cams.c2w.float()), persistent=False)
+        frame = average_pose(cams.c2w.float())
+        self.register_buffer("ndc_frame", frame, persistent=False)
         self.ndc_scale = (float(2 * cams.fx.mean() / cams.width), float(2 * cams.fy.mean() / cams.height))
+        self.ndc_near = ndc_near(frame, scene.points, scene.near)  # NeRF's LLFF rule (fields/ndc.py)
 
     # ------------------------------------------------------------------ optimisation
 
@@ -128,7 +130,7 @@ class NerfMLPField(RayField):
     def density(self, points: Tensor) -> Tensor:
         """Volume density (P,) at world points (P, 3) of the normalised scene (for export)."""
         if self.use_ndc:
-            points = ndc_points(self._to_ndc_frame(points), *self.ndc_scale, self.near)
+            points = ndc_points(self._to_ndc_frame(points), *self.ndc_scale, self.ndc_near)
         net = self.fine if self.fine is not None else self.coarse
         return F.relu(net.raw_density(points))
 
@@ -148,7 +150,7 @@ class NerfMLPField(RayField):
         if self.use_ndc:
             o_ref = self._to_ndc_frame(origins)
             d_ref = directions @ self.ndc_frame[:3, :3]
-            o, d, t_near = ndc_rays(o_ref, d_ref, *self.ndc_scale, self.near)
+            o, d, t_near = ndc_rays(o_ref, d_ref, *self.ndc_scale, self.ndc_near)
             start = torch.zeros_like(z_scale)
             t = stratified_samples(start, torch.ones_like(start), c.samples_coarse, perturb)
         else:
@@ -167,7 +169,7 @@ class NerfMLPField(RayField):
         out["rgb"] = composite(weights, rgb)
         out["acc"] = weights.sum(-1)
         if self.use_ndc:
-            dist = t_near[:, None] + ndc_to_distance(t, self.near, d_ref[:, 2:3])
+            dist = t_near[:, None] + ndc_to_distance(t, self.ndc_near, d_ref[:, 2:3])
             out["depth"] = (weights * dist).sum(-1) * z_scale
         else:
             out["depth"] = (weights * t).sum(-1)  # t is z-depth here
