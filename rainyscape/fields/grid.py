@@ -198,9 +198,7 @@ class GridField(RayField):
     def density(self, points: Tensor) -> Tensor:
         """Volume density (P,) at world points (P, 3) of the normalised scene (for export);
         zero outside the grid cube (NDC and box layouts)."""
-        g = self.space.world_to_grid(points)
-        sigma = self._sigma(g.clamp(-1.0, 1.0))
-        return torch.where((g.abs() <= 1.0).all(-1), sigma, torch.zeros_like(sigma))
+        return self.space.density_at(points, self._sigma)
 
     def _samples(self, rays: SampleRays) -> tuple[Tensor, Tensor]:
         """Sample parameters t (R, N) and which are real (R, N): evenly spaced on the linear

@@ -182,9 +182,7 @@ class PackedGridField(RayField):
 
     def density(self, points: Tensor) -> Tensor:
         """Volume density (P,) at world points (P, 3) of the normalised scene (for export)."""
-        g = self.space.world_to_grid(points)
-        sigma = self._sigma(self.encoding.density(g.clamp(-1, 1)))
-        return torch.where((g.abs() <= 1).all(-1), sigma, torch.zeros_like(sigma))
+        return self.space.density_at(points, lambda g: self._sigma(self.encoding.density(g)))
 
     # ----------------------------------------------------------------- rendering
 

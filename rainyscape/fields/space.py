@@ -22,6 +22,7 @@ the interval lengths in those units (NDC lengths as NeRF's LLFF mode does).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 from torch import Tensor, nn
@@ -160,6 +161,14 @@ class GridSpace(nn.Module):
             ref = (points - frame[:3, 3]) @ frame[:3, :3]
             return (ndc_points(ref, *self.ndc_scale, self.near) - self.box_center) / self.box_half
         return self.to_grid((points - self.box_center) / self.box_half)
+
+    def density_at(self, points: Tensor, sigma: Callable[[Tensor], Tensor]) -> Tensor:
+        """Density (P,) at world points (P, 3) from ``sigma`` of grid coordinates; zero outside
+        the grid cube (NDC and box layouts; contracted space has no outside)."""
+        g = self.world_to_grid(points)
+        inside = (g.abs() <= 1.0).all(-1)
+        values = sigma(g.clamp(-1.0, 1.0))
+        return torch.where(inside, values, torch.zeros_like(values))
 
     def length_per_grid(self, g: Tensor) -> Tensor:
         """Sampling-space length (world or NDC units) per grid length at grid points (..., 3),
