@@ -80,6 +80,23 @@ def test_robustnerf_threshold_is_the_previous_batchs_quantile_and_is_checkpointe
     assert loss.metrics["inlier_fraction"] < 1.0
 
 
+def test_robustnerf_threshold_pools_small_batches_up_to_the_papers_64_patches():
+    g = torch.Generator().manual_seed(3)
+    loss = RobustNeRFLoss()
+    residuals = []
+    for k in range(40):  # batches of 2 patches, each with its own error level
+        rendered = torch.rand(2, 3, 16, 16, generator=g) * (k + 1) / 40
+        target = torch.zeros(2, 3, 16, 16)
+        loss(_ctx(rendered, target))
+        residuals.append((rendered ** 2).mean(1).flatten(1))
+    pooled = torch.cat(residuals[-32:])  # the last 32 batches: 64 patches
+    assert loss.threshold == pytest.approx(float(torch.quantile(pooled.flatten(), 0.8)), rel=1e-5)
+    assert sum(len(r) for r in loss.pool) == 64
+    restored = RobustNeRFLoss()
+    restored.load_state_dict(loss.state_dict())
+    assert all(torch.equal(a, b) for a, b in zip(restored.pool, loss.pool))
+
+
 def test_robustnerf_no_gradient_from_trimmed_pixels_and_mean_over_every_pixel():
     rendered = torch.full((1, 3, 16, 16), 0.5)
     target = rendered.clone()
