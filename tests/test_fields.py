@@ -11,7 +11,7 @@ from rainyscape import config
 from rainyscape.cameras import Window
 from rainyscape.components import TrainState
 from rainyscape.errors import ConfigError
-from rainyscape.fields.grid import GridField, growth_resolution
+from rainyscape.fields.grid import GridField, growth_resolution, ray_distortion
 from rainyscape.fields.ndc import ndc_near
 from rainyscape.fields.nerf_mlp import NerfMLP, NerfMLPField
 from rainyscape.scene import faces_forward, points_box
@@ -168,6 +168,38 @@ def test_every_grid_parameter_group_gets_gradients(tiny_scene):
     for group in field.param_groups():
         assert group.params and all(p.grad is not None for p in group.params), group.name
         assert sum(float(p.grad.abs().sum()) for p in group.params) > 0, group.name
+
+
+def test_grid_distortion_is_the_double_sum_over_sample_ranks():
+    """Dense per-ray samples: the loss is mip-NeRF 360's double sum with each real sample one
+    interval of width 1/N in rank order; padding (not real, no weight) takes no room."""
+    w = torch.tensor([[0.1, 0.0, 0.5, 0.2], [0.0, 0.6, 0.0, 0.3]])
+    valid = torch.tensor([[True, False, True, True], [True, True, True, True]])
+    n = w.shape[1]
+    for r in range(2):
+        ws = w[r][valid[r]]
+        mid = (torch.arange(len(ws)) + 0.5) / n
+        want = (ws[:, None] * ws[None] * (mid[:, None] - mid[None]).abs()).sum() + (ws ** 2).sum() / (3 * n)
+        assert torch.isclose(ray_distortion(w, valid)[r], want, atol=1e-6)
+    # weight gathered at one sample costs less than the same weight spread over the ray
+    spread, gathered = torch.full((1, 8), 0.1), torch.zeros(1, 8)
+    gathered[0, 3] = 0.8
+    ones = torch.ones(1, 8, dtype=torch.bool)
+    assert ray_distortion(gathered, ones) < ray_distortion(spread, ones)
+
+
+def test_grid_distortion_loss_in_training_only_and_it_reaches_the_density(tiny_scene):
+    field = _field("grid", tiny_scene, resolution_init=24, distortion=0.01)
+    cams, window = _full(tiny_scene, [0])
+    out = field.train().render(cams, window)
+    losses = field.extra_losses(out, out.rgb)
+    assert set(losses) == {"distortion"} and losses["distortion"] > 0
+    losses["distortion"].backward()
+    assert sum(float(p.grad.abs().sum()) for p in field.density_grid.factors()) > 0
+    with torch.no_grad():
+        assert "distortion" not in field.eval().render(cams, window).extras
+    off = _field("grid", tiny_scene, resolution_init=24)
+    assert off.extra_losses(off.train().render(cams, window), out.rgb) == {}
 
 
 def test_points_box_bounds_the_grids_by_the_sparse_points(tiny_scene):

@@ -37,10 +37,31 @@ def test_perfect_rain_prediction_recovers_the_clean_image():
     rain = torch.zeros(3, 16, 16)
     rain[:, 4:12, 7] = 0.4  # one streak
     rendered = clean + 0.05 * torch.randn(3, 16, 16, generator=g)  # a slightly blurry render
-    fused = RainMaskFusion()(rendered, rain, clean + rain)
+    fused = RainMaskFusion(RainMaskFusion.Config(below_input=False))(rendered, rain, clean + rain)
     outside = rain_mask(rain, 0.02, 1).expand(3, -1, -1)
     assert torch.equal(fused[~outside], clean[~outside])
     assert torch.equal(fused[outside], rendered[outside])
+
+
+def test_below_input_takes_the_render_only_where_it_is_darker_than_the_input():
+    """Rain only adds light (I = B + R, R >= 0): inside the mask, a render brighter than the
+    input is wrong there and the input is kept; the result is closer to the clean scene than
+    the paper's fusion whenever the render errs both ways."""
+    g = torch.Generator().manual_seed(1)
+    clean = 0.2 + 0.5 * torch.rand(3, 16, 16, generator=g)
+    rain = torch.zeros(3, 16, 16)
+    rain[:, 2:14, 5] = 0.3
+    rain[:, 3:15, 11] = 0.25
+    rainy = clean + rain
+    rendered = clean + 0.08 * torch.randn(3, 16, 16, generator=g)  # under-fitted: errs both ways
+    fusion = RainMaskFusion(RainMaskFusion.Config(threshold=0.02, dilation=1))
+    fused = fusion(rendered, rain, rainy)
+    inside = rain_mask(rain, 0.02, 1).expand(3, -1, -1)
+    assert torch.equal(fused[inside], torch.minimum(rendered, rainy)[inside])
+    assert torch.equal(fused[~inside], rainy[~inside])
+    paper = RainMaskFusion(RainMaskFusion.Config(threshold=0.02, dilation=1, below_input=False))(rendered, rain, rainy)
+    error = lambda x: float((x - clean).square().mean())  # noqa: E731
+    assert error(fused) < error(paper) < error(rainy)
 
 
 def test_bad_options():

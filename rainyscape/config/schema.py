@@ -161,6 +161,10 @@ class PhaseConfig:
     # each model's gradient norm clipped to this before its step (0: no clipping; the authors'
     # code clips at 1 in its 3DGS joint phase)
     grad_clip: float = bounded(0.0, 0.0, 1e6)
+    # beyond the paper: each step the heads also learn on this many whole training views
+    # against the field's cached render of them (engine/render_cache.py); for ray fields,
+    # whose batches show a head each pixel about once a run (0: off)
+    head_views: int = bounded(0, 0, 64)
 
 
 @dataclass

@@ -54,11 +54,15 @@ def build_pipeline(config: PipelineConfig, scene: SceneData, device: torch.devic
 
 def check_layers(config: PipelineConfig, heads: dict[str, ImageHead],
                  losses: dict[str, tuple[LossConfig, Loss]]) -> None:
-    """Every loss term must have, in each phase it acts in, the image layers it needs."""
+    """Every loss term must have, in each phase it acts in, the image layers it needs; a phase
+    that trains heads on whole views must have heads."""
     schedule = PhaseSchedule.of(config.phases, config.trainer.max_iters)
     for name, phase in config.phases.items():
         if schedule.length(name) == 0:
             continue
+        if phase.head_views and not phase.heads:
+            raise ConfigError(f"phases.{name}.head_views={phase.head_views}: the phase has no heads "
+                              f"to learn on whole views (set phases.{name}.heads, or head_views=0)")
         layers = {heads[h].layer for h in phase.heads}
         for key, (cfg, term) in losses.items():
             missing = [n for n in term.needs if n not in layers] if name in cfg.phases and cfg.weight else []

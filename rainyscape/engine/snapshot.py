@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 from rainyscape.components import Callback, Loss
+from rainyscape.engine.render_cache import RenderCache
 
 
 @dataclass
@@ -27,6 +28,7 @@ class TrainingParts:
     losses: dict[str, Loss]
     callbacks: list[Callback]
     generator: torch.Generator  # the batch sampler's
+    render_cache: RenderCache | None = None  # the field's last renders, where a phase uses them
 
 
 def rng_state() -> dict:
@@ -61,6 +63,7 @@ def capture(step: int, parts: TrainingParts) -> dict:
         "losses": {k: t.state_dict() for k, t in parts.losses.items()},
         "callbacks": [cb.state_dict() for cb in parts.callbacks],
         "rng": {"sampler": parts.generator.get_state(), **rng_state()},
+        "render_cache": parts.render_cache.state_dict() if parts.render_cache is not None else None,
     }
 
 
@@ -81,5 +84,7 @@ def restore_rest(state: dict, parts: TrainingParts) -> None:
             term.load_state_dict(state["losses"][k])
     for cb, cb_state in zip(parts.callbacks, state.get("callbacks", [])):
         cb.load_state_dict(cb_state)
+    if parts.render_cache is not None and state.get("render_cache") is not None:
+        parts.render_cache.load_state_dict(state["render_cache"])
     parts.generator.set_state(state["rng"]["sampler"].cpu())
     set_rng_state(state["rng"])

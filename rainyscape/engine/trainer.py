@@ -28,6 +28,7 @@ from rainyscape.engine.loss_sum import compute_losses
 from rainyscape.engine.phases import PhaseSchedule
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.engine.progress import ProgressBar
+from rainyscape.engine.render_cache import RenderCache
 from rainyscape.engine.run_folder import RunFolder, fitting_the_run
 from rainyscape.engine.sampling import MAX_WHOLE_IMAGE_PIXELS, batch_count, gather_pixels, sample_windows
 from rainyscape.errors import DataError
@@ -77,6 +78,9 @@ class Trainer:
                           *(cb for _, term in self.pipeline.losses.values() for cb in term.callbacks())]
         self.batch_sizes = {name: batch_count(p.patches, p.patch_size, self.scene.width, self.scene.height)
                             for name, p in pipeline.config.phases.items()}
+        # the field's last render of every view, for heads that learn on whole views
+        self.render_cache = (RenderCache(len(self.images), self.scene.height, self.scene.width, self.device)
+                             if any(p.head_views for p in pipeline.config.phases.values()) else None)
         self.last_save = time.monotonic()
 
     # ------------------------------------------------------------------ set-up
@@ -123,6 +127,8 @@ class Trainer:
         view_ids, window, target = self._batch(name, phase)
         self.pipeline.field.train()
         out = self.pipeline.field.render(self.cameras[view_ids], window)
+        if self.render_cache is not None:
+            self.render_cache.write(view_ids, window, out)
         heads = [self.pipeline.heads[key] for key in phase.heads]
         layers: dict[str, Tensor] = {}
         for head in heads:
@@ -133,6 +139,10 @@ class Trainer:
         total, values = compute_losses(terms, ctx)
         # what the terms measured on this batch (the latent updates below evaluate them again)
         measured = {f"{key}.{mk}": mv for key, (_, term) in terms.items() for mk, mv in term.metrics.items()}
+        if phase.head_views:
+            cached_total, cached_values = self._cached_view_losses(name, phase, heads, terms)
+            total = total + cached_total
+            values.update({f"cached_views.{k}": v for k, v in cached_values.items()})
         # the render with every layer laid over it (what the input should look like)
         fit = out.rgb.detach()
         for head in heads:
@@ -165,6 +175,17 @@ class Trainer:
             record["metrics"] = measured
         return record
 
+    def _cached_view_losses(self, name: str, phase: PhaseConfig, heads: list, terms) -> tuple[Tensor, dict]:
+        """The phase's loss terms on ``phase.head_views`` whole training views, with the
+        field's cached render of them (detached) as the background: only the heads learn."""
+        view_ids, window = sample_windows(self.train_pool, phase.head_views, 0, self.scene.width,
+                                          self.scene.height, self.generator)
+        cached = self.render_cache.read(view_ids, window)
+        target = gather_pixels(self.images, view_ids.to(self.device), window)
+        layers = {head.layer: head(view_ids.to(self.device), window) for head in heads}
+        ctx = LossContext(cached.rgb, target, layers, cached, view_ids, self.step, name, window, record=False)
+        return compute_losses(terms, ctx)
+
     def _energy(self, ctx: LossContext, window: Window, layer: str, terms) -> Energy:
         """The phase's loss as a function of one layer's prediction on a sub-window, with the
         render (detached) and the other layers held at this step's values."""
@@ -187,7 +208,7 @@ class Trainer:
     def _parts(self) -> snapshot.TrainingParts:
         return snapshot.TrainingParts(self.pipeline.models(), self.optimizers,
                                       {k: t for k, (_, t) in self.pipeline.losses.items()},
-                                      self.callbacks, self.generator)
+                                      self.callbacks, self.generator, self.render_cache)
 
     def save(self) -> Path:
         self.last_save = time.monotonic()

@@ -35,6 +35,7 @@ from rainyscape.fields.encoding import encoded_dim, positional_encoding
 from rainyscape.fields.feature_grids import DenseGrid, VMTables
 from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
 from rainyscape.fields.optim_state import replace_adam_param
+from rainyscape.fields.packed import distortion
 from rainyscape.fields.ray_field import RayField
 from rainyscape.fields.rendering import FAR_DELTA, compositing_weights, sample_deltas
 from rainyscape.fields.space import GridSpace, SampleRays
@@ -66,6 +67,18 @@ def pixel_matched_resolution(extent: Tensor, width: int, height: int) -> int:
     an axis of half size h needs h x pixels texels, and axis_sizes shares the lattice in
     proportion to the half sizes."""
     return int(round(max(width, height) * float(extent.prod()) ** (1.0 / 3.0)))
+
+
+def ray_distortion(weights: Tensor, valid: Tensor) -> Tensor:
+    """mip-NeRF 360's distortion loss per ray (R,) of densely laid out samples (R, N), over
+    the samples' rank among the ray's real ones divided by N: the grid's samples are evenly
+    spaced in its sampling space (voxels, then the contracted shell), so their rank is that
+    space's coordinate, and padding (zero-length intervals, zero weight) takes no room."""
+    r, n = weights.shape
+    width = valid.to(weights.dtype) / n
+    s1 = torch.cumsum(width, -1)
+    ray = torch.arange(r, device=weights.device).repeat_interleave(n)
+    return distortion(weights.reshape(-1), (s1 - width).reshape(-1), s1.reshape(-1), ray, r)
 
 
 class ColorNet(nn.Module):
@@ -124,6 +137,7 @@ class GridField(RayField):
         occupancy_threshold: float = bounded(0.01, 0.0, 1.0)  # opacity of one step below which a cell is empty
         weight_threshold: float = bounded(1e-4, 0.0, 1.0)  # colour is computed only where a sample's weight reaches this
         transmittance_threshold: float = bounded(1e-4, 0.0, 1.0)  # samples behind this much opacity get no gradient
+        distortion: float = bounded(0.0, 0.0)  # weight of mip-NeRF 360's distortion loss (0: off)
         lr_density: float = bounded(0.1, 0.0)
         lr_color: float = bounded(0.1, 0.0)
         lr_network: float = bounded(1e-3, 0.0)
@@ -257,7 +271,10 @@ class GridField(RayField):
             rgb = rgb + rest[:, None]
         distance = self.space.distance(rays, t)
         depth = ((weights * distance).sum(-1) + rest * self.space.far) * z_scale
-        return {"rgb": rgb, "depth": depth, "acc": acc}
+        out = {"rgb": rgb, "depth": depth, "acc": acc}
+        if self.training and self.config.distortion > 0:
+            out["distortion"] = ray_distortion(weights, valid)
+        return out
 
     # -------------------------------------------------------------- optimisation
 

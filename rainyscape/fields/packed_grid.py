@@ -301,12 +301,6 @@ class PackedGridField(RayField):
         shift, dz = (rays.ndc_shift, rays.ndc_dz) if ray is None else (rays.ndc_shift[ray], rays.ndc_dz[ray])
         return shift + ndc_to_distance(t.clamp(max=1.0 - 1e-4), self.space.near, dz)
 
-    def extra_losses(self, output, target: Tensor) -> dict[str, Tensor]:
-        d = output.extras.get("distortion")
-        if d is None or self.config.distortion <= 0:
-            return {}
-        return {"distortion": self.config.distortion * d.mean()}
-
     # -------------------------------------------------------------- optimisation
 
     def param_groups(self) -> list[ParamGroup]:

@@ -24,6 +24,15 @@ class RayField(Field):
     def render_rays(self, origins: Tensor, directions: Tensor, z_scale: Tensor) -> dict[str, Tensor]:
         raise NotImplementedError  # abstract
 
+    def extra_losses(self, output: RenderOutput, target: Tensor) -> dict[str, Tensor]:
+        """mip-NeRF 360's distortion loss, weighted by ``config.distortion``, when the field's
+        render_rays returned it per ray (training only)."""
+        d = output.extras.get("distortion")
+        weight = getattr(self.config, "distortion", 0.0)
+        if d is None or weight <= 0:
+            return {}
+        return {"distortion": weight * d.mean()}
+
     def render(self, cameras: Cameras, window: Window) -> RenderOutput:
         rays = window_rays(cameras, window)
         b, h, w = rays.origins.shape[:3]

@@ -3,6 +3,11 @@
 Where the predicted rain map says there is rain, keep the rendered (de-rained) pixel;
 elsewhere the rainy input is already clean, so keep the input pixel, which is sharper than
 any render. Only possible on training views: held-out views have no input image.
+
+Beyond the paper (``below_input``, the default): inside the mask a pixel takes the render
+only where it is darker than the input. The paper's model is I = B + R with R >= 0, so the
+clean scene is nowhere brighter than the rainy photo; where the render is, it is wrong there
+(a detail it has not fitted, or rain it kept), and the input is the closer of the two.
 """
 
 from __future__ import annotations
@@ -40,9 +45,11 @@ def rain_mask(rain: Tensor, threshold: float, dilation: int) -> Tensor:
     return mask > 0
 
 
-def fuse(rendered: Tensor, rainy: Tensor, mask: Tensor) -> Tensor:
-    """Rendered pixels inside ``mask``, input pixels outside."""
-    return torch.where(mask, rendered, rainy)
+def fuse(rendered: Tensor, rainy: Tensor, mask: Tensor, below_input: bool = True) -> Tensor:
+    """Rendered pixels inside ``mask`` (with ``below_input``, per channel the darker of the
+    render and the input: rain only adds light), input pixels outside."""
+    inside = torch.minimum(rendered, rainy) if below_input else rendered
+    return torch.where(mask, inside, rainy)
 
 
 def random_mask_like(mask: Tensor, seed: int) -> Tensor:
@@ -66,6 +73,9 @@ class RainMaskFusion(PostProcess):
         threshold: float = bounded(0.0, 0.0, 1.0)
         sigmas: float = bounded(3.0, above=0.0, hi=100.0)
         dilation: int = bounded(1, 0, 64)  # grow the mask by this many pixels
+        # inside the mask, the render only where it is darker than the input (I = B + R,
+        # R >= 0); false: the paper's fusion (measured: docs/rain.md, "Fusion below the input")
+        below_input: bool = True
 
     def __init__(self, config: "RainMaskFusion.Config | None" = None):
         super().__init__(config or self.Config())
@@ -80,11 +90,11 @@ class RainMaskFusion(PostProcess):
         return rain_mask(rain, threshold, c.dilation)
 
     def __call__(self, rendered: Tensor, rain: Tensor, rainy: Tensor) -> Tensor:
-        return fuse(rendered, rainy, self.mask(rain))
+        return fuse(rendered, rainy, self.mask(rain), self.config.below_input)
 
     def control(self, rendered: Tensor, rain: Tensor, rainy: Tensor, seed: int) -> FusionControl:
         """:class:`rainyscape.components.MaskFusion`: the mask's coverage, and the fusion under
         a random mask of that coverage."""
         mask = self.mask(rain)
         return FusionControl(float(mask.float().mean()),
-                             fuse(rendered, rainy, random_mask_like(mask, seed)).clamp(0, 1))
+                             fuse(rendered, rainy, random_mask_like(mask, seed), self.config.below_input).clamp(0, 1))

@@ -1,0 +1,92 @@
+"""The field's last render of every view, kept from the batches it renders, so that heads can
+learn on whole views the field did not render this step (``phases.NAME.head_views``).
+
+Why: a ray field renders about a thousand pixels a step on a CPU, so a rain head that learns
+only where the field rendered sees each pixel of a view about once in a run, and learns
+little rain (docs/rain.md, "The rain head on a ray field"). The cache holds, per pixel, the
+colour and depth the field last rendered there (detached). Where it never rendered, the
+nearest rendered pixels stand in (:func:`fill_holes`): after a warm-up of random rays about
+half the pixels are known, and a background is smooth next to rain streaks a pixel wide.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from rainyscape.cameras import Window
+from rainyscape.components import RenderOutput
+
+
+def fill_holes(values: Tensor, known: Tensor) -> Tensor:
+    """``values`` (B, C, h, w) where ``known`` (B, 1, h, w, bool); elsewhere the mean of the
+    known pixels in the smallest square around each (3, 5, 9, ... pixels wide: normalised
+    convolution) that holds one. Images with no known pixel stay as they are."""
+    out = values.clone()
+    missing = ~known
+    weight = known.to(values.dtype)
+    total = values * weight
+    size = 3
+    while bool(missing.any()):
+        kernel = torch.ones(1, 1, size, size, dtype=values.dtype, device=values.device)
+        count = F.conv2d(weight, kernel, padding=size // 2)
+        sums = F.conv2d(total.flatten(0, 1)[:, None], kernel, padding=size // 2).view_as(values)
+        fill = missing & (count > 0)
+        out = torch.where(fill, sums / count.clamp_min(1e-12), out)
+        missing = missing & ~fill
+        if size > 2 * max(values.shape[-2:]):
+            break  # only images with no known pixel are left
+        size = 2 * size - 1
+    return out
+
+
+class RenderCache:
+    """Per view: the colour and depth the field last rendered at each pixel, and where it did."""
+
+    def __init__(self, views: int, height: int, width: int, device: torch.device | str = "cpu"):
+        # half precision: about a hundredth of a grey level, next to rain's tenths
+        self.rgb = torch.zeros(views, height, width, 3, dtype=torch.float16, device=device)
+        self.depth = torch.zeros(views, height, width, 1, dtype=torch.float16, device=device)
+        self.known = torch.zeros(views, height, width, 1, dtype=torch.bool, device=device)
+
+    @torch.no_grad()
+    def write(self, view_ids: Tensor, window: Window, output: RenderOutput) -> None:
+        """Keep the render of ``window`` of the views ``view_ids`` (the newest wins; of a pixel
+        drawn twice in one batch, the later one: an assignment with repeated indices would
+        keep either, by thread timing, and resumed runs would not match)."""
+        xs, ys = window.pixel_grid(self.rgb.device)
+        height, width = self.known.shape[1:3]
+        v = view_ids.to(self.rgb.device)[:, None, None]
+        flat = ((v * height + ys) * width + xs).reshape(-1)
+        order = torch.argsort(flat, stable=True)
+        ranked = flat[order]
+        last = torch.ones_like(ranked, dtype=torch.bool)
+        last[:-1] = ranked[1:] != ranked[:-1]
+        rows, cells = order[last], ranked[last]
+        rgb = output.rgb.detach().permute(0, 2, 3, 1).reshape(-1, 3)
+        self.rgb.view(-1, 3)[cells] = rgb[rows].to(self.rgb.dtype)
+        if output.depth is not None:
+            self.depth.view(-1)[cells] = output.depth.detach().reshape(-1)[rows].to(self.depth.dtype)
+        self.known.view(-1)[cells] = True
+
+    @torch.no_grad()
+    def read(self, view_ids: Tensor, window: Window) -> RenderOutput:
+        """The cached render of ``window`` of the views (B, C, h, w, float32), holes filled."""
+        xs, ys = window.pixel_grid(self.rgb.device)
+        v = view_ids.to(self.rgb.device)[:, None, None]
+        known = self.known[v, ys, xs].permute(0, 3, 1, 2)
+        both = torch.cat([self.rgb[v, ys, xs], self.depth[v, ys, xs]], -1).permute(0, 3, 1, 2).float()
+        filled = fill_holes(both, known)
+        return RenderOutput(rgb=filled[:, :3], depth=filled[:, 3:])
+
+    def coverage(self, view_ids: Tensor) -> float:
+        """Share of the views' pixels the field has rendered."""
+        return float(self.known[view_ids.to(self.known.device)].float().mean())
+
+    def state_dict(self) -> dict:
+        return {"rgb": self.rgb, "depth": self.depth, "known": self.known}
+
+    def load_state_dict(self, state: dict) -> None:
+        for key in ("rgb", "depth", "known"):
+            getattr(self, key).copy_(state[key])
