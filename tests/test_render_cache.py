@@ -9,12 +9,19 @@ import torch
 
 from rainyscape.cameras import Window
 from rainyscape.components import RenderOutput
-from rainyscape.engine.render_cache import RenderCache, fill_holes
+from rainyscape.engine.render_cache import RenderCache, box_sum, fill_holes
 
 
 def _smooth(h: int = 24, w: int = 32) -> torch.Tensor:
     y, x = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
     return torch.stack([x, y, 0.5 * (x + y)])[None]  # (1, 3, h, w)
+
+
+def test_box_sum_is_the_square_windows_sum():
+    x = torch.rand(2, 1, 9, 11, generator=torch.Generator().manual_seed(2))
+    for size in (3, 5, 9):
+        square = torch.nn.functional.conv2d(x, torch.ones(1, 1, size, size), padding=size // 2)
+        assert torch.allclose(box_sum(x, size), square, atol=1e-5)
 
 
 def test_fill_holes_keeps_known_pixels_and_fills_from_neighbours():

@@ -19,6 +19,14 @@ from rainyscape.cameras import Window
 from rainyscape.components import RenderOutput
 
 
+def box_sum(images: Tensor, size: int) -> Tensor:
+    """Sum over the size x size square around each pixel of (N, 1, h, w) images (zero outside),
+    as two 1-D passes: the cost grows with ``size``, not its square."""
+    row = torch.ones(1, 1, 1, size, dtype=images.dtype, device=images.device)
+    across = F.conv2d(images, row, padding=(0, size // 2))
+    return F.conv2d(across, row.transpose(2, 3), padding=(size // 2, 0))
+
+
 def fill_holes(values: Tensor, known: Tensor) -> Tensor:
     """``values`` (B, C, h, w) where ``known`` (B, 1, h, w, bool); elsewhere the mean of the
     known pixels in the smallest square around each (3, 5, 9, ... pixels wide: normalised
@@ -29,9 +37,8 @@ def fill_holes(values: Tensor, known: Tensor) -> Tensor:
     total = values * weight
     size = 3
     while bool(missing.any()):
-        kernel = torch.ones(1, 1, size, size, dtype=values.dtype, device=values.device)
-        count = F.conv2d(weight, kernel, padding=size // 2)
-        sums = F.conv2d(total.flatten(0, 1)[:, None], kernel, padding=size // 2).view_as(values)
+        count = box_sum(weight, size)
+        sums = box_sum(total.flatten(0, 1)[:, None], size).view_as(values)
         fill = missing & (count > 0)
         out = torch.where(fill, sums / count.clamp_min(1e-12), out)
         missing = missing & ~fill

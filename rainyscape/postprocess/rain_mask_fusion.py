@@ -96,5 +96,5 @@ class RainMaskFusion(PostProcess):
         """:class:`rainyscape.components.MaskFusion`: the mask's coverage, and the fusion under
         a random mask of that coverage."""
         mask = self.mask(rain)
-        return FusionControl(float(mask.float().mean()),
-                             fuse(rendered, rainy, random_mask_like(mask, seed), self.config.below_input).clamp(0, 1))
+        control = fuse(rendered, rainy, random_mask_like(mask, seed), self.config.below_input)
+        return FusionControl(float(mask.float().mean()), control.clamp(0, 1))
