@@ -87,10 +87,6 @@ class RenderCache:
         filled = fill_holes(both, known)
         return RenderOutput(rgb=filled[:, :3], depth=filled[:, 3:])
 
-    def coverage(self, view_ids: Tensor) -> float:
-        """Share of the views' pixels the field has rendered."""
-        return float(self.known[view_ids.to(self.known.device)].float().mean())
-
     def state_dict(self) -> dict:
         return {"rgb": self.rgb, "depth": self.depth, "known": self.known}
 

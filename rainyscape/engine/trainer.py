@@ -180,9 +180,10 @@ class Trainer:
         field's cached render of them (detached) as the background: only the heads learn."""
         view_ids, window = sample_windows(self.train_pool, phase.head_views, 0, self.scene.width,
                                           self.scene.height, self.generator)
-        cached = self.render_cache.read(view_ids, window)
-        target = gather_pixels(self.images, view_ids.to(self.device), window)
-        layers = {head.layer: head(view_ids.to(self.device), window) for head in heads}
+        views = view_ids.to(self.device)
+        cached = self.render_cache.read(views, window)
+        target = gather_pixels(self.images, views, window)
+        layers = {head.layer: head(views, window) for head in heads}
         ctx = LossContext(cached.rgb, target, layers, cached, view_ids, self.step, name, window, record=False)
         return compute_losses(terms, ctx)
 
