@@ -217,17 +217,20 @@ class Loss:
 
 
 class PostProcess:
-    """``__call__(rendered, rain, rainy) -> image`` on one training view (3, H, W).
+    """``__call__(rendered, rain, rainy) -> image`` on one training view (3, H, W); ``rain``
+    is the rain head's predicted rain, None in a pipeline without one (``needs_rain``: the
+    post-process cannot work then, and the pipeline refuses to build).
 
     A fusion that keeps rendered pixels under a mask and input pixels elsewhere also states
     :class:`MaskFusion` (its coverage and its random-mask control)."""
 
     description = ""
+    needs_rain = False
 
     def __init__(self, config: Any = None):
         self.config = config
 
-    def __call__(self, rendered: Tensor, rain: Tensor, rainy: Tensor) -> Tensor:
+    def __call__(self, rendered: Tensor, rain: Tensor | None, rainy: Tensor) -> Tensor:
         raise NotImplementedError  # abstract
 
 
@@ -281,7 +284,7 @@ class MaskFusion(Protocol):
     pixels with the same coverage: a fused gain the control also shows comes from copying the
     input, not from finding the rain."""
 
-    def control(self, rendered: Tensor, rain: Tensor, rainy: Tensor, seed: int) -> FusionControl:
+    def control(self, rendered: Tensor, rain: Tensor | None, rainy: Tensor, seed: int) -> FusionControl:
         """Coverage of this view's mask and the control (its random mask placed with ``seed``:
         the same seed gives the same mask anywhere)."""
 

@@ -3,11 +3,15 @@ presets; explicit options override them; presets, folders and the demo still wor
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
 
 from rainyscape.comparison.matrix import has_clean_views
 from rainyscape.comparison.options import BenchOptions
 from rainyscape.comparison.plan import plan_bench
+from rainyscape.comparison.scenes import cache_folder, resolve_scene
 from rainyscape.comparison.sets import SCENE_SETS, scene_set
 from rainyscape.errors import ConfigError
 from rainyscape.synth.presets import PRESETS
@@ -120,3 +124,17 @@ def test_ceiling_rows_train_listed_plain_fields_on_the_clean_views(tiny_scene_di
         _plan(scenes="yard", ceiling="rainyscape-3dgs")
     (tmp_path / "cameras.csv").write_text("")  # a folder without clean views gets no ceiling row
     assert has_clean_views(str(tiny_scene_dir)) and has_clean_views("") and not has_clean_views(str(tmp_path))
+
+
+def test_dynamic_rain_plans_its_own_labelled_and_cached_scenes(tmp_path):
+    static, dynamic = _plan(scenes="cpu"), _plan(scenes="cpu", scene_rain="dynamic")
+    assert [p.label for p in dynamic.scenes] == [f"{p.label}-dynamic" for p in static.scenes]
+    assert all(p.mode == "dynamic" and p.preset for p in dynamic.scenes)
+    folders = {cache_folder(p, tmp_path) for p in static.scenes + dynamic.scenes}
+    assert len(folders) == 10  # static and dynamic scenes never share a cache folder
+    with pytest.raises(ConfigError, match="scene_rain=dynamic .*simulates none"):
+        _plan(scenes=str(tmp_path), scene_rain="dynamic")
+    # simulated with rain that moves: the scene says so, and its views' rain differs in time
+    tiny = _plan(scenes="yard", scene_rain="dynamic", scene_width=32, scene_rows=1, scene_cols=3).scenes[0]
+    label, folder = resolve_scene(tiny, tmp_path)
+    assert label == "yard-dynamic" and json.loads((Path(folder) / "scene.json").read_text())["mode"] == "dynamic"

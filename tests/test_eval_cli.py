@@ -55,13 +55,14 @@ def test_rs_eval_writes_every_field_and_a_working_report(trained_run):
     m = json.loads((trained_run / "metrics.json").read_text())
     s = m["summary"]
     for key in ("rainy_input_psnr", "rainy_input_ssim", "train_psnr", "train_ssim",
-                "train_rain-mask-fusion_psnr", "train_rain-mask-fusion_ssim", "heldout_psnr", "heldout_ssim",
+                "train_rain-mask-fusion_psnr", "train_rain-mask-fusion_ssim", "train_streak-fusion_psnr",
+                "train_streak-fusion_random_psnr", "heldout_psnr", "heldout_ssim",
                 "train_psnr_vs_rainy", "rain_angle_true_deg"):
         assert isinstance(s[key], float), key
     for key in ("rain_angle_deg", "residual_angle_deg", "rain_correlation"):  # None: no streaks predicted yet
         assert key in s and (s[key] is None or isinstance(s[key], float)), key
     assert s["rainy_input_psnr"] > s["train_psnr"] - 50 and 0 < s["train_ssim"] <= 1
-    assert m["step"] == ITERS and m["postprocess"] == ["rain-mask-fusion"]
+    assert m["step"] == ITERS and m["postprocess"] == ["rain-mask-fusion", "streak-fusion"]
     assert m["lpips"]["available"] or m["lpips"]["reason"]
     assert {r["split"] for r in m["per_view"]} == {"train", "heldout"} and len(m["per_view"]) == 12
     report = trained_run / "report.html"
@@ -130,3 +131,18 @@ def test_cli_errors_are_one_line(tmp_path, trained_run):
     # the installed console script behaves the same
     script = subprocess.run(["rs-eval", str(tmp_path)], capture_output=True, text=True)
     assert script.returncode == 2 and script.stderr.startswith("error: ") and str(tmp_path) in script.stderr
+
+
+def test_rs_eval_changes_post_processes_only(trained_run):
+    """A finished run is evaluated under other post-processes than it trained with; every
+    other override is refused (the checkpoint fixes it), naming the key."""
+    done = _cli("rs-eval", str(trained_run), "device=cpu", "postprocess.streak-fusion=none")
+    assert done.returncode == 0, done.stderr
+    m = json.loads((trained_run / "metrics.json").read_text())
+    assert m["postprocess"] == ["rain-mask-fusion"]
+    assert "train_rain-mask-fusion_psnr" in m["summary"] and "train_streak-fusion_psnr" not in m["summary"]
+    bad = _cli("rs-eval", str(trained_run), "device=cpu", "field.hidden=8")
+    assert bad.returncode == 2 and "field.hidden=8" in bad.stderr and "postprocess" in bad.stderr
+    assert _cli("rs-eval", str(trained_run), "device=cpu").returncode == 0  # as trained, for the next tests
+    m = json.loads((trained_run / "metrics.json").read_text())
+    assert m["postprocess"] == ["rain-mask-fusion", "streak-fusion"]

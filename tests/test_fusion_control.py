@@ -12,7 +12,8 @@ from rainyscape.components import MaskFusion, ParamGroup, RainHead
 from rainyscape.config import ComponentConfig, PipelineConfig
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.eval.protocol import evaluate_pipeline
-from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion, fuse, rain_mask, random_mask_like
+from rainyscape.postprocess.fusion import fuse, rain_mask, random_mask_like
+from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion
 from _eval_fixtures import OracleField, TrueRainHead, make_scene
 
 KEY = "rain-mask-fusion"

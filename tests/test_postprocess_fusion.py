@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from rainyscape.errors import ConfigError
-from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion, rain_mask
+from rainyscape.postprocess.fusion import rain_mask
+from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion
 
 
 def test_mask_thresholds_any_channel_and_dilates():
@@ -79,8 +80,8 @@ def test_default_threshold_follows_each_views_own_rain_and_is_never_empty():
         rain = base + 0.001 * torch.rand(3, 32, 32, generator=gen)
         rain[:, 4:28, 10] += streak  # one vertical streak, 24 of 1024 pixels
         fusion = RainMaskFusion(RainMaskFusion.Config(dilation=0))
-        mask = fusion.mask(rain)[0]
+        mask = fusion.mask(rain, rain, rain)[0]  # only the predicted rain counts
         assert mask[4:28, 10].all()  # the streak
         assert mask.sum() <= 24 + 10  # and hardly anything else
-        fixed = RainMaskFusion(RainMaskFusion.Config(threshold=0.02, dilation=0)).mask(rain)
+        fixed = RainMaskFusion(RainMaskFusion.Config(threshold=0.02, dilation=0)).mask(rain, rain, rain)
         assert fixed.any() == (base > 0.02)  # the old constant: empty under a faint head

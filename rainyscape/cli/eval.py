@@ -1,7 +1,7 @@
 """rs-eval: evaluate a trained run with the evaluation protocol (docs/evaluation.md).
 
 Usage:
-  rs-eval RUN_DIR [device=auto|cpu|cuda] [step=N] [data=MOVED_SCENE]
+  rs-eval RUN_DIR [device=auto|cpu|cuda] [step=N] [data=MOVED_SCENE] [postprocess.NAME=on|none ...]
 
 Computes PSNR / SSIM (and LPIPS when its weights are on this machine) of the rainy inputs,
 the renders at training views (with and without post-processing) and at held-out views
@@ -9,6 +9,11 @@ against the clean images, the predicted rain angle and, on simulated scenes, the
 correlation of the predicted with the true rain layer, on every view (a progress bar
 with its ETA shows on a terminal). Writes RUN_DIR/metrics.json,
 comparison strips under RUN_DIR/renders/strips and RUN_DIR/report.html.
+
+``postprocess.NAME=on|none`` and ``postprocess.NAME.KEY=VALUE`` evaluate the run with other
+post-processes than it trained with (they change no trained state): for example
+``postprocess.streak-fusion=on`` fuses a plain field's renders. metrics.json lists the
+post-processes it evaluated.
 """
 
 from __future__ import annotations
@@ -27,7 +32,8 @@ class EvalOptions:
     step: int | None = opt(None, "the checkpoint's step (default: the latest)", lo=0, hi=MAX_STEPS)
 
 
-COMMAND = Command("rs-eval", __doc__, EvalOptions, positional="RUN_DIR", oom_hint=READ_OOM_HINT)
+COMMAND = Command("rs-eval", __doc__, EvalOptions, positional="RUN_DIR", oom_hint=READ_OOM_HINT,
+                  overrides="dotted")
 
 
 def print_summary(summary: dict) -> None:
@@ -48,7 +54,8 @@ def main(argv: list[str]) -> int:
 
     check_writable(folder, "rs-eval writes metrics.json, report.html and renders/strips there")
 
-    pipeline, step = load_run(folder, opts.device, opts.step, data=opts.data, prepare_scene=complete_scene)
+    pipeline, step = load_run(folder, opts.device, opts.step, data=opts.data, prepare_scene=complete_scene,
+                              postprocess=args.overrides)
     print(f"evaluating every view ({pipeline.scene.num_images}) of {folder} at step {step}",
           file=sys.stderr)
     metrics = evaluate_pipeline(pipeline, folder)

@@ -46,6 +46,10 @@ class BenchOptions:
                                                          "preset's)", "min": 0, "max": 100})
     scene_cols: int = field(default=0, metadata={"help": "simulated scenes: camera columns (0: the set's or "
                                                          "preset's)", "min": 0, "max": 100})
+    scene_rain: str = field(default="static", metadata={"help": "simulated scenes: rain fixed in 3D, as a "
+                                                                "camera array sees it (static), or moving "
+                                                                "between views, as in a video (dynamic)",
+                                                        "choices": ("static", "dynamic")})
     allow_unequal: bool = field(default=False, metadata={"help": "run methods of one field with different "
                                                                  "budgets (steps, pixels per step); the tables "
                                                                  "print the difference"})

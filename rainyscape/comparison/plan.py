@@ -168,7 +168,8 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
     per_method = {m: per_method.get(m, []) + own.get(m, []) for m in every}
     size = dict(width=opts.scene_width or (sset.width if sset else 0),
                 height=opts.scene_height or (sset.height if sset and not opts.scene_width else 0),
-                rows=opts.scene_rows or (sset.rows if sset else 0), cols=opts.scene_cols or (sset.cols if sset else 0))
+                rows=opts.scene_rows or (sset.rows if sset else 0), cols=opts.scene_cols or (sset.cols if sset else 0),
+                mode=opts.scene_rain)
     specs = list(sset.presets) if sset else [s.strip() for s in opts.scenes.split(",") if s.strip()]
     if sset and sset.captures:  # made (once, cached) now: their sizes come from the folders
         from rainyscape.comparison.captures import real_scenes
@@ -181,6 +182,9 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
         planned = [plan_scene(s, **size) for s in specs]
     scenes = list({p.label: p for p in planned}.values())
     simulated = [p.label for p in scenes if not p.folder]
+    if opts.scene_rain != "static" and not [p for p in scenes if p.preset and not p.embedded]:
+        raise ConfigError(f"rs-bench: scene_rain={opts.scene_rain} makes simulated scenes' rain; "
+                          f"scenes={opts.scenes} simulates none (a folder keeps its own rain)")
     if opts.dataparser not in ("auto", SIMULATED_FORMAT) and simulated:
         raise ConfigError(f"rs-bench: dataparser={opts.dataparser}: {', '.join(simulated)} "
                           f"{'is' if len(simulated) == 1 else 'are'} simulated in the {SIMULATED_FORMAT} "

@@ -24,11 +24,14 @@ class ScenePlan:
     rows: int = 0
     cols: int = 0
     embedded: bool = False  # the embedded demo scene (synth/demo.py: DEMO_PRESET at DEMO_SIZE)
+    mode: str = "static"  # presets: the simulator's rain mode (static: fixed in 3D; dynamic: moving)
 
 
-def plan_scene(spec: str, width: int = 0, height: int = 0, rows: int = 0, cols: int = 0) -> ScenePlan:
+def plan_scene(spec: str, width: int = 0, height: int = 0, rows: int = 0, cols: int = 0,
+               mode: str = "static") -> ScenePlan:
     """The plan of a scene given as ``demo``, a simulator preset or a folder path. Sizes left
-    at 0 are the preset's; a width without a height keeps the preset's aspect ratio."""
+    at 0 are the preset's; a width without a height keeps the preset's aspect ratio. A preset
+    in ``mode=dynamic`` rain is labelled ``PRESET-dynamic`` (a folder has its own rain)."""
     path = Path(spec).expanduser()
     if path.is_dir():
         return ScenePlan(path.name, folder=str(path.resolve()))
@@ -40,9 +43,10 @@ def plan_scene(spec: str, width: int = 0, height: int = 0, rows: int = 0, cols: 
     p = PRESETS[spec]
     w = width or p.width
     h = height or (p.height if w == p.width else max(1, round(w * p.height / p.width)))
-    embedded = spec == "demo" and not (width or height or rows or cols)
-    return ScenePlan(spec, preset=spec, width=w, height=h, rows=rows or p.rows, cols=cols or p.cols,
-                     embedded=embedded)
+    embedded = spec == "demo" and not (width or height or rows or cols) and mode == "static"
+    label = spec if mode == "static" else f"{spec}-{mode}"
+    return ScenePlan(label, preset=spec, width=w, height=h, rows=rows or p.rows, cols=cols or p.cols,
+                     embedded=embedded, mode=mode)
 
 
 def cache_folder(plan: ScenePlan, cache: Path) -> Path | None:
@@ -51,7 +55,8 @@ def cache_folder(plan: ScenePlan, cache: Path) -> Path | None:
         return None
     from rainyscape.synth import SIM_VERSION
 
-    return cache / f"{plan.preset}-{plan.width}x{plan.height}-{plan.rows}x{plan.cols}-v{SIM_VERSION}"
+    mode = "" if plan.mode == "static" else f"-{plan.mode}"
+    return cache / f"{plan.preset}-{plan.width}x{plan.height}-{plan.rows}x{plan.cols}{mode}-v{SIM_VERSION}"
 
 
 def resolve_scene(plan: ScenePlan, cache: Path) -> tuple[str, str]:
@@ -67,9 +72,10 @@ def resolve_scene(plan: ScenePlan, cache: Path) -> tuple[str, str]:
     folder = cache_folder(plan, cache)
     if not (folder / "scene.json").is_file():
         print(f"simulating scene '{plan.preset}' ({plan.rows} x {plan.cols} views, {plan.width} x "
-              f"{plan.height} px) into {folder} ...", flush=True)
+              f"{plan.height} px, {plan.mode} rain) into {folder} ...", flush=True)
         try:  # built beside the folder and moved in when complete
-            generate(folder, plan.preset, rows=plan.rows, cols=plan.cols, width=plan.width, height=plan.height)
+            generate(folder, plan.preset, rows=plan.rows, cols=plan.cols, width=plan.width, height=plan.height,
+                     mode=plan.mode)
         except DataError:
             if not (folder / "scene.json").is_file():  # else another rs-bench simulated it meanwhile
                 raise

@@ -49,6 +49,11 @@ def build_pipeline(config: PipelineConfig, scene: SceneData, device: torch.devic
     for _, term in losses.values():
         term.setup(scene, device)
     post = {k: registry.load("postprocess", p.name)(p.options) for k, p in config.postprocess.items()}
+    for key, process in post.items():
+        if process.needs_rain and "rain_head" not in heads:
+            raise ConfigError(f"postprocess.{key} fuses by the rain head's predicted rain, and this "
+                              f"pipeline has no rain head; set rain_head=NAME, or use "
+                              f"postprocess.streak-fusion=on (it needs none)")
     return Pipeline(config, scene, field, heads, losses, post, device)
 
 

@@ -8,9 +8,9 @@ import dataclasses
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
-from rainyscape.config import PipelineConfig, with_run_length
+from rainyscape.config import PipelineConfig, apply_overrides, parse_overrides, with_run_length
 from rainyscape.engine.device import resolve_device
 from rainyscape.engine.lock import RunLock
 from rainyscape.engine.pipeline import Pipeline, build_pipeline
@@ -132,13 +132,21 @@ def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
 
 def load_run(run_dir: Path, device: str = "auto", step: int | None = None,
              data: str | Path | None = None,
-             prepare_scene: Callable[[PipelineConfig, SceneData], SceneData] | None = None
-             ) -> tuple[Pipeline, int]:
+             prepare_scene: Callable[[PipelineConfig, SceneData], SceneData] | None = None,
+             postprocess: Sequence[str] = ()) -> tuple[Pipeline, int]:
     """Rebuild a run's pipeline from config.yml and load its latest readable (or given)
     checkpoint. ``data`` replaces the scene folder config.yml names (a moved scene);
-    ``prepare_scene`` completes the scene as it did for training (see :func:`open_run`)."""
+    ``prepare_scene`` completes the scene as it did for training (see :func:`open_run`);
+    ``postprocess`` overrides (``postprocess.NAME=on|none``, ``postprocess.NAME.KEY=V``)
+    change the post-processes, which touch no checkpointed state."""
     folder = RunFolder.check(run_dir)
     cfg = folder.config()
+    if postprocess:
+        not_post = [o for o in postprocess if not o.startswith("postprocess.")]
+        if not_post:
+            raise ConfigError(f"'{not_post[0]}': a finished run takes only postprocess.* overrides "
+                              f"(everything else is fixed by its checkpoint)")
+        cfg = apply_overrides(cfg, parse_overrides(list(postprocess)))
     if data:
         cfg = dataclasses.replace(cfg, data=str(data))
     dev = resolve_device(device)

@@ -80,8 +80,6 @@ def fusion_controls(pipeline: Pipeline, v: ViewImages) -> dict[str, tuple[float,
     of its mask, the same fusion under a random mask of that coverage, placed with the view's
     seed). Other post-processes get none."""
     out: dict[str, tuple[float, Tensor]] = {}
-    if v.rain is None:
-        return out
     for key, post in pipeline.postprocess.items():
         if key in v.post and isinstance(post, MaskFusion):
             control = post.control(v.rendered, v.rain, v.rainy, CONTROL_SEED + v.index)

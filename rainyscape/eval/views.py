@@ -135,8 +135,9 @@ def view_images(pipeline: Pipeline, index: int) -> ViewImages:
         v.clean = to_float(scene.clean_images[index], dev)
     if scene.rain_layers is not None:
         v.true_rain = scene.rain_layers[index].to(dev).permute(2, 0, 1).float()
-    if split == "train" and pipeline.rain_head is not None:
-        v.rain = predict_rain(pipeline, index, v.rendered)
+    if split == "train":
+        if pipeline.rain_head is not None:
+            v.rain = predict_rain(pipeline, index, v.rendered)
         for key, post in pipeline.postprocess.items():
             v.post[key] = post(v.rendered, v.rain, v.rainy).clamp(0, 1)
     return v

@@ -74,7 +74,8 @@ def _rainyscape_3dgs() -> PipelineConfig:
         "tv": LossConfig("tv", weight=w["tv"]),
         "agr": LossConfig("agr", weight=w["agr"], detach="rendered"),
     }
-    cfg.postprocess = {"rain-mask-fusion": ComponentConfig("rain-mask-fusion", {})}
+    cfg.postprocess = {"rain-mask-fusion": ComponentConfig("rain-mask-fusion", {}),
+                       "streak-fusion": ComponentConfig("streak-fusion", {})}
     # One whole view per joint step, as in the warm-up and `3dgs` (a 64 x 64 patch per step
     # left the Gaussians 2.5 dB behind `3dgs`); the latent updates use a 64 x 64 crop of it.
     cfg.phases = {"warmup": PhaseConfig(end=PAPER_WARMUP, patches=1, patch_size=0),

@@ -68,7 +68,8 @@ def with_rain_module(base: MethodSpec, name: str, *, weights: dict[str, float],
                              field_lr_scale=field_lr_scale_joint, head_views=head_views),
     }
     cfg.losses = rain_losses(weights, agr)
-    cfg.postprocess = {"rain-mask-fusion": ComponentConfig("rain-mask-fusion", dict(fusion or {}))}
+    cfg.postprocess = {"rain-mask-fusion": ComponentConfig("rain-mask-fusion", dict(fusion or {})),
+                       "streak-fusion": ComponentConfig("streak-fusion", {})}
     return cfg
 
 

@@ -1,0 +1,75 @@
+"""Mask fusion, shared by the fusion post-processes: a mask of a training view's rain, and
+the fused view that takes the render inside it and the input elsewhere (the input is exact
+wherever it is dry and sharper than any render), with its random-mask control.
+
+Inside the mask a pixel takes the render only where it is darker than the input
+(``below_input``): the paper's model is I = B + R with R >= 0, so the clean scene is nowhere
+brighter than the rainy photo; where the render is, it is wrong there (a detail it has not
+fitted, or rain it kept), and the input is the closer of the two.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from rainyscape.components import FusionControl, PostProcess
+
+
+def robust_threshold(values: Tensor, sigmas: float) -> float:
+    """A level that separates a view's streaks from its dry pixels, from the view's own map
+    (3, H, W) of rain-like values: the median of the per-pixel maximum over channels plus
+    ``sigmas`` robust standard deviations (1.4826 x the median absolute deviation). Streaks
+    are a minority of the pixels (2-20 % in light to heavy rain), so the median and its
+    deviation describe the dry ones, whatever the map's overall level; a constant can sit
+    above every streak (an empty mask)."""
+    level = values.amax(0).flatten()
+    median = level.median()
+    spread = 1.4826 * (level - median).abs().median()
+    return float(median + sigmas * spread.clamp_min(1e-6))
+
+
+def rain_mask(rain: Tensor, threshold: float, dilation: int) -> Tensor:
+    """Binary mask (1, H, W): any channel of ``rain`` (3, H, W) above ``threshold``, grown by
+    ``dilation`` pixels in every direction (a square structuring element), so the faint
+    fringes of a streak go to the render as well."""
+    mask = (rain.amax(0, keepdim=True) > threshold).to(rain.dtype)
+    if dilation > 0:
+        mask = F.max_pool2d(mask[None], 2 * dilation + 1, stride=1, padding=dilation)[0]
+    return mask > 0
+
+
+def fuse(rendered: Tensor, rainy: Tensor, mask: Tensor, below_input: bool = True) -> Tensor:
+    """Rendered pixels inside ``mask`` (with ``below_input``, per channel the darker of the
+    render and the input: rain only adds light), input pixels outside."""
+    inside = torch.minimum(rendered, rainy) if below_input else rendered
+    return torch.where(mask, inside, rainy)
+
+
+def random_mask_like(mask: Tensor, seed: int) -> Tensor:
+    """A boolean mask of ``mask``'s shape with exactly as many pixels set, placed uniformly at
+    random (``torch.randperm`` with ``seed``: the same seed gives the same mask anywhere)."""
+    n, k = mask.numel(), int(mask.sum())
+    flat = torch.zeros(n, dtype=torch.bool)
+    flat[torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:k]] = True
+    return flat.view(mask.shape).to(mask.device)
+
+
+class MaskedFusion(PostProcess):
+    """A fusion post-process: ``mask`` says where the view's rain is; the rest is shared.
+    States :class:`rainyscape.components.MaskFusion` (coverage and random-mask control)."""
+
+    below_input = True
+
+    def mask(self, rendered: Tensor, rain: Tensor | None, rainy: Tensor) -> Tensor:
+        raise NotImplementedError  # abstract
+
+    def __call__(self, rendered: Tensor, rain: Tensor | None, rainy: Tensor) -> Tensor:
+        return fuse(rendered, rainy, self.mask(rendered, rain, rainy), self.below_input)
+
+    def control(self, rendered: Tensor, rain: Tensor | None, rainy: Tensor, seed: int) -> FusionControl:
+        """The mask's coverage, and the fusion under a random mask of that coverage."""
+        mask = self.mask(rendered, rain, rainy)
+        control = fuse(rendered, rainy, random_mask_like(mask, seed), self.below_input)
+        return FusionControl(float(mask.float().mean()), control.clamp(0, 1))

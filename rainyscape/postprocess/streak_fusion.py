@@ -1,0 +1,57 @@
+"""Streak fusion (beyond the paper): the render where the input stands above it in streaks.
+
+The residual I - B of a training view holds the rain the render left out and the detail it
+missed. Rain streaks share one direction (the paper's rain-angle estimate, III-C, finds it
+from this residual's gradient orientations); detail runs every way. A pixel goes to the
+render where the residual stands out both on its own and averaged along the streak
+direction (:func:`rainyscape.imaging.streaks.line_mean`), each by ``sigmas`` robust
+deviations of the view's own values. It needs no rain head: any method's render can be
+fused, so a plain field's fused view is the baseline a rain head's must beat.
+
+Measured against the rain head's mask (docs/rain.md, "Streak fusion").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from rainyscape.config.schema import bounded
+from rainyscape.imaging.angles import estimate_rain_angles, streak_angle
+from rainyscape.imaging.streaks import line_mean
+from rainyscape.postprocess.fusion import MaskedFusion, rain_mask, robust_threshold
+
+
+def streak_mask(rendered: Tensor, rainy: Tensor, sigmas: float, half_length: int, dilation: int) -> Tensor:
+    """(1, H, W) mask of the streaks by which ``rainy`` (3, H, W) stands above ``rendered``:
+    the residual above its robust threshold, and its mean along the streak direction above
+    that mean's. Empty where the residual has no gradient to find a direction from."""
+    residual = rainy - rendered
+    brighter = residual.clamp_min(0)[None]
+    theta, valid = estimate_rain_angles(brighter)  # the AGR loss's defaults
+    if not bool(valid[0, 0]):
+        return torch.zeros_like(residual[:1], dtype=torch.bool)
+    along = line_mean(brighter, streak_angle(theta[:, 0]), half_length)[0]
+    return (rain_mask(residual, robust_threshold(residual, sigmas), dilation)
+            & rain_mask(along, robust_threshold(along, sigmas), dilation))
+
+
+class StreakFusion(MaskedFusion):
+    """Keep rendered pixels where the input stands above the render in streaks."""
+
+    description = "streak fusion: rendered where the input exceeds the render along the rain's direction"
+
+    @dataclass
+    class Config:
+        sigmas: float = bounded(3.0, above=0.0, hi=100.0)  # robust deviations above the median
+        half_length: int = bounded(3, 1, 32)  # the line mean spans 2 half_length + 1 pixels
+        dilation: int = bounded(1, 0, 64)  # grow the mask by this many pixels
+
+    def __init__(self, config: "StreakFusion.Config | None" = None):
+        super().__init__(config or self.Config())
+
+    def mask(self, rendered: Tensor, rain: Tensor | None, rainy: Tensor) -> Tensor:
+        c = self.config
+        return streak_mask(rendered, rainy, c.sigmas, c.half_length, c.dilation)

@@ -1,0 +1,96 @@
+"""Streak fusion: the render where the input stands above it in streaks of one direction. It
+needs no rain head, finds streaks rather than the detail a render missed, and beats its
+random-mask control; rain-mask fusion without a rain head is refused."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from rainyscape.config import ComponentConfig, PipelineConfig, method_config
+from rainyscape.engine.pipeline import Pipeline, build_pipeline
+from rainyscape.errors import ConfigError
+from rainyscape.eval.protocol import evaluate_pipeline
+from rainyscape.imaging.metrics import psnr
+from rainyscape.imaging.streaks import line_mean
+from rainyscape.postprocess.fusion import rain_mask, robust_threshold
+from rainyscape.postprocess.streak_fusion import StreakFusion, streak_mask
+from _eval_fixtures import OracleField, make_scene
+
+KEY = "streak-fusion"
+
+
+def test_line_mean_keeps_a_line_along_its_direction_and_spreads_it_across():
+    image = torch.zeros(1, 1, 15, 15)
+    image[0, 0, :, 7] = 1.0  # a vertical line
+    along = line_mean(image, torch.tensor([math.pi / 2]), 3)[0, 0]
+    across = line_mean(image, torch.tensor([0.0]), 3)[0, 0]
+    assert torch.allclose(along[:, 7], torch.ones(15), atol=1e-5)
+    assert torch.allclose(across[5, 4:11], torch.full((7,), 1 / 7), atol=1e-5)
+    assert float(across[5, 2]) == pytest.approx(0.0, abs=1e-6)
+    flat = torch.full((2, 3, 9, 11), 0.4)
+    assert torch.allclose(line_mean(flat, torch.tensor([0.3, 2.0]), 4), flat, atol=1e-6)
+
+
+def _streaks(h: int, w: int, angle_deg: float, period: float, seed: int) -> torch.Tensor:
+    """Parallel anti-aliased lines (H, W) about a pixel wide along ``angle_deg`` (from +x
+    towards +y): jagged ones would bend the estimated direction by a few degrees."""
+    a = math.radians(angle_deg)
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
+                            indexing="ij")
+    across = torch.remainder(-xs * math.sin(a) + ys * math.cos(a) + seed * 2.7, period)
+    return (1 - torch.minimum(across, period - across)).clamp_min(0)
+
+
+def _view(seed: int = 0, h: int = 64, w: int = 80):
+    """A clean view with bright grain (single pixels) that the render missed, and
+    rain streaks at 70 degrees on the input; the streaks' pixels, the details'."""
+    g = torch.Generator().manual_seed(seed)
+    smooth = torch.nn.functional.interpolate(torch.rand(1, 3, h // 16, w // 16, generator=g), size=(h, w),
+                                             mode="bilinear", align_corners=False)[0] * 0.5 + 0.1
+    detail = (torch.rand(1, h, w, generator=g) < 0.05).float() * 0.3  # bright grain, no direction
+    clean = smooth + detail
+    rendered = smooth + 0.01 * torch.randn(3, h, w, generator=g)  # no render is exact
+    rain = _streaks(h, w, 70.0, 9.0, seed)[None] * 0.3
+    return clean, rendered, clean + rain, rain[0] > 0.1, detail[0] > 0
+
+
+def test_streak_mask_finds_the_streaks_not_the_missed_detail():
+    clean, rendered, rainy, wet, speck = _view()
+    mask = streak_mask(rendered, rainy, sigmas=3.0, half_length=3, dilation=0)[0]
+    residual = rainy - rendered
+    residual_only = rain_mask(residual, robust_threshold(residual, 3.0), 0)[0]
+    dry_speck = speck & ~wet
+    assert mask[wet].float().mean() > 0.8  # the streaks
+    assert residual_only[dry_speck].float().mean() > 0.9  # the residual alone takes the grain too ...
+    assert mask[dry_speck].float().mean() < 0.5 * residual_only[dry_speck].float().mean()  # ... the line mean not
+
+
+def test_streak_fusion_beats_its_random_mask_control_and_keeps_a_dry_view():
+    clean, rendered, rainy, _, _ = _view(seed=3)
+    fusion = StreakFusion()
+    fused = fusion(rendered, None, rainy)
+    control = fusion.control(rendered, None, rainy, seed=1)
+    assert 0.05 < control.coverage < 0.5
+    assert float(psnr(fused, clean)) > float(psnr(control.control, clean)) + 3
+    assert float(psnr(fused, clean)) > float(psnr(rainy, clean)) + 3
+    dry = fusion.control(rendered, None, rendered, seed=1)  # nothing above the render: no mask
+    assert dry.coverage == 0.0 and torch.equal(fusion(rendered, None, rendered), rendered)
+
+
+def test_a_field_without_a_rain_head_is_fused_and_controlled():
+    scene = make_scene(n=5, h=48, w=64)
+    cfg = PipelineConfig(method="fake", dataparser=ComponentConfig("auto"), field=ComponentConfig("fake"))
+    pipeline = Pipeline(cfg, scene, OracleField(scene), {}, {}, {KEY: StreakFusion()}, torch.device("cpu"))
+    s = evaluate_pipeline(pipeline)["summary"]
+    assert s[f"train_{KEY}_coverage"] > 0.05
+    assert s[f"train_{KEY}_psnr"] > s["rainy_input_psnr"] + 3
+    assert s[f"train_{KEY}_psnr"] > s[f"train_{KEY}_random_psnr"] + 1
+
+
+def test_rain_mask_fusion_without_a_rain_head_is_refused():
+    cfg = method_config("nerf", ["postprocess.rain-mask-fusion=on", "trainer.device=cpu"])
+    with pytest.raises(ConfigError, match="postprocess.rain-mask-fusion .*no rain head.*streak-fusion"):
+        build_pipeline(cfg, make_scene(), torch.device("cpu"))
