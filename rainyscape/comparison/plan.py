@@ -182,7 +182,7 @@ def plan_bench(opts: BenchOptions, overrides: list[str]) -> BenchPlan:
         planned = [plan_scene(s, **size) for s in specs]
     scenes = list({p.label: p for p in planned}.values())
     simulated = [p.label for p in scenes if not p.folder]
-    if opts.scene_rain != "static" and not [p for p in scenes if p.preset and not p.embedded]:
+    if opts.scene_rain != "static" and not any(p.preset for p in scenes):
         raise ConfigError(f"rs-bench: scene_rain={opts.scene_rain} makes simulated scenes' rain; "
                           f"scenes={opts.scenes} simulates none (a folder keeps its own rain)")
     if opts.dataparser not in ("auto", SIMULATED_FORMAT) and simulated:

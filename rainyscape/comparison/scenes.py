@@ -27,6 +27,11 @@ class ScenePlan:
     mode: str = "static"  # presets: the simulator's rain mode (static: fixed in 3D; dynamic: moving)
 
 
+def rain_suffix(mode: str) -> str:
+    """What a preset's label and cache folder add for its rain mode ("" for static rain)."""
+    return "" if mode == "static" else f"-{mode}"
+
+
 def plan_scene(spec: str, width: int = 0, height: int = 0, rows: int = 0, cols: int = 0,
                mode: str = "static") -> ScenePlan:
     """The plan of a scene given as ``demo``, a simulator preset or a folder path. Sizes left
@@ -44,8 +49,7 @@ def plan_scene(spec: str, width: int = 0, height: int = 0, rows: int = 0, cols: 
     w = width or p.width
     h = height or (p.height if w == p.width else max(1, round(w * p.height / p.width)))
     embedded = spec == "demo" and not (width or height or rows or cols) and mode == "static"
-    label = spec if mode == "static" else f"{spec}-{mode}"
-    return ScenePlan(label, preset=spec, width=w, height=h, rows=rows or p.rows, cols=cols or p.cols,
+    return ScenePlan(spec + rain_suffix(mode), preset=spec, width=w, height=h, rows=rows or p.rows, cols=cols or p.cols,
                      embedded=embedded, mode=mode)
 
 
@@ -55,8 +59,8 @@ def cache_folder(plan: ScenePlan, cache: Path) -> Path | None:
         return None
     from rainyscape.synth import SIM_VERSION
 
-    mode = "" if plan.mode == "static" else f"-{plan.mode}"
-    return cache / f"{plan.preset}-{plan.width}x{plan.height}-{plan.rows}x{plan.cols}{mode}-v{SIM_VERSION}"
+    return cache / (f"{plan.preset}-{plan.width}x{plan.height}-{plan.rows}x{plan.cols}"
+                    f"{rain_suffix(plan.mode)}-v{SIM_VERSION}")
 
 
 def resolve_scene(plan: ScenePlan, cache: Path) -> tuple[str, str]:
