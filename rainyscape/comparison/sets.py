@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 
 from rainyscape.errors import ConfigError
 from rainyscape.methods.gaussians import GS_ITERS
+from rainyscape.methods.nerf import NERF_ITERS
 
 # light, medium, heavy, slanted 30 deg by wind, two directions (docs/simulator.md).
 CPU_PRESETS = ("yard", "crossroad", "plaza", "street", "bridge")
@@ -51,7 +52,7 @@ class SceneSet:
 
 SCENE_SETS: dict[str, SceneSet] = {s.name: s for s in [
     SceneSet("cpu", CPU_PRESETS, width=128, height=128, rows=3, cols=6,
-             iters={"grid": 1500, "gaussians": 1500},
+             iters={"grid": NERF_ITERS, "gaussians": 1500},
              description="five presets (light, medium, heavy, slanted 30 deg, two directions) at 128 px, "
                          "3 x 6 views: the six-method table in at most an hour on 2 CPU cores"),
     SceneSet("paper", CPU_PRESETS, width=512, height=512, rows=5, cols=10,
@@ -59,12 +60,12 @@ SCENE_SETS: dict[str, SceneSet] = {s.name: s for s in [
              description="the same presets at the paper's size (5 x 10 views, 512 px) and step counts "
                          "(18k for NeRF, 30k for 3DGS): a GPU run"),
     SceneSet("distractors", DISTRACTOR_PRESETS, width=128, height=128, rows=3, cols=6,
-             iters={"grid": 1500, "gaussians": GS_ITERS},
+             iters={"grid": NERF_ITERS, "gaussians": GS_ITERS},
              description="three rain-free scenes with transient people, cars and leaves, one set per view, "
                          "at the cpu set's size, the Gaussians at the 3DGS CPU recipe's longest run: "
                          "where the robust baselines must beat their plain fields"),
     SceneSet("real", (), width=0, height=0, rows=0, cols=0,
-             iters={"grid": 1500, "gaussians": 1500}, captures=True,
+             iters={"grid": NERF_ITERS, "gaussians": 1500}, captures=True,
              description="real captures (captures=FOLDER) at about 240 px with simulated rain in their own "
                          "cameras, light / medium / heavy; the photos are the ground truth"),
 ]}

@@ -107,7 +107,10 @@ class GridField(RayField):
         # 512: colour texels about a pixel wide on the cpu set's 128 px views (the old 128 lost
         # 3.8 dB on their training views; docs/benchmarks.md, issue 27)
         resolution_final: int = bounded(512, 2, 1024)  # ... and after the last growth (NDC: at most a texel per pixel)
-        growth_at: tuple[float, ...] = bounded((0.05, 0.1, 0.2, 0.3, 0.4), 0.0, 1.0)  # fractions of the run where it grows
+        # fractions of the run where it grows: most of the run on the coarse lattices, whose
+        # steps are cheap (samples are spaced in voxels); the old (0.05 ... 0.4) over half the
+        # steps ended 2.2 dB lower on real fern in the same CPU time (docs/benchmarks.md, issue 27)
+        growth_at: tuple[float, ...] = bounded((0.1, 0.2, 0.4, 0.6, 0.8), 0.0, 1.0)
         # vm: measured 1.1 dB better after 300 steps and twice as fast per step as dense (docs/benchmarks.md)
         density_grid: Literal["dense", "vm"] = "vm"
         density_components: int = bounded(4, 1)  # vm density: components per mode
@@ -141,7 +144,9 @@ class GridField(RayField):
         lr_density: float = bounded(0.1, 0.0)
         lr_color: float = bounded(0.1, 0.0)
         lr_network: float = bounded(1e-3, 0.0)
-        lr_decay: float = bounded(0.1, above=0.0)  # every lr x lr_decay per lr_decay_steps (exponentially)
+        # every lr x lr_decay per lr_decay_steps (exponentially); 0.1 slowed the grids while
+        # they still had most of the views to fit (1.2-1.4 dB lost on the cpu set's yard and plaza)
+        lr_decay: float = bounded(0.5, above=0.0)
         lr_decay_steps: int = bounded(3000, 0)
         chunk: int = bounded(8192, 1)  # rays per chunk when rendering without gradients
         train_chunk: int = bounded(0, 0)  # rays per gradient-checkpointed chunk in training (0: one pass)

@@ -17,11 +17,11 @@ def _photometric() -> dict[str, LossConfig]:
     return {"photometric": LossConfig("photometric", weight=1.0, phases=("fit",))}
 
 
-NERF_ITERS = 1500
-# The GPU recipe of the fast field: 4x the rays, 10x the steps and a finer final lattice
+NERF_ITERS = 3000  # cheap coarse steps first: the field's growth sits at 10-80 % of them
+# The GPU recipe of the fast field: 4x the rays, 5x the steps and a finer final lattice
 # (1024^3 over the contracted cube, samples every 2 of its voxels: texels and samples twice
 # as fine as the CPU recipe's, for 2-4x larger images). Reasoned from the CPU measurements
-# (the field fits its images in about 1.5k CPU steps at 128 px); not yet timed on a GPU
+# (the field fits its images in about 3k CPU steps at 128 to 250 px); not yet timed on a GPU
 # (docs/profiles.md). NERF_GPU holds what every method on this field shares; each method
 # spreads NERF_GPU_RAYS over its own phases and batches.
 NERF_GPU_RAYS = 4096
