@@ -49,8 +49,8 @@ def plan_scene(spec: str, width: int = 0, height: int = 0, rows: int = 0, cols: 
     w = width or p.width
     h = height or (p.height if w == p.width else max(1, round(w * p.height / p.width)))
     embedded = spec == "demo" and not (width or height or rows or cols) and mode == "static"
-    return ScenePlan(spec + rain_suffix(mode), preset=spec, width=w, height=h, rows=rows or p.rows, cols=cols or p.cols,
-                     embedded=embedded, mode=mode)
+    return ScenePlan(spec + rain_suffix(mode), preset=spec, width=w, height=h, rows=rows or p.rows,
+                     cols=cols or p.cols, embedded=embedded, mode=mode)
 
 
 def cache_folder(plan: ScenePlan, cache: Path) -> Path | None:

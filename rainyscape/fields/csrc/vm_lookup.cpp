@@ -74,14 +74,21 @@ inline Taps taps(const Layout& L, const float* x, int m) {
 // which it would not do for one loop writing six rows it must assume may alias.
 constexpr int64_t kChunk = 64;  // channels per pass of the backward's local buffers
 
+// The plane's bilinear tap and the line's linear tap of channel r.
+inline float plane_tap(const Taps& t, const float* __restrict a, const float* __restrict b,
+                       const float* __restrict c, const float* __restrict d, int64_t r) {
+  return t.w00 * a[r] + t.w01 * b[r] + t.w10 * c[r] + t.w11 * d[r];
+}
+
+inline float line_tap(const Taps& t, const float* __restrict e, const float* __restrict f, int64_t r) {
+  return t.v0 * e[r] + t.v1 * f[r];
+}
+
 inline void mode_forward(const Taps& t, const float* __restrict a, const float* __restrict b,
                          const float* __restrict c, const float* __restrict d,
                          const float* __restrict e, const float* __restrict f,
                          float* __restrict o, int64_t n) {
-  for (int64_t r = 0; r < n; ++r) {
-    const float p = t.w00 * a[r] + t.w01 * b[r] + t.w10 * c[r] + t.w11 * d[r];
-    o[r] = p * (t.v0 * e[r] + t.v1 * f[r]);
-  }
+  for (int64_t r = 0; r < n; ++r) o[r] = plane_tap(t, a, b, c, d, r) * line_tap(t, e, f, r);
 }
 
 // d out / d plane tap (before its weight) and d out / d line tap, for n channels.
@@ -91,10 +98,8 @@ inline void mode_partials(const Taps& t, const float* __restrict a, const float*
                           const float* __restrict g, float* __restrict gpl,
                           float* __restrict gln, int64_t n) {
   for (int64_t r = 0; r < n; ++r) {
-    const float p = t.w00 * a[r] + t.w01 * b[r] + t.w10 * c[r] + t.w11 * d[r];
-    const float l = t.v0 * e[r] + t.v1 * f[r];
-    gpl[r] = g[r] * l;
-    gln[r] = g[r] * p;
+    gpl[r] = g[r] * line_tap(t, e, f, r);
+    gln[r] = g[r] * plane_tap(t, a, b, c, d, r);
   }
 }
 
