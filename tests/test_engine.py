@@ -177,3 +177,29 @@ def test_phase_grad_clip_bounds_each_models_gradient_norm(tiny_scene, tmp_path, 
         assert all(n <= clip * 1.001 for n in joint.values()), joint
     else:
         assert max(joint.values()) > 1e-3, joint  # the clip above acts on gradients this large
+
+
+def test_rainyscape_nerf_field_gradients_keep_their_scale_across_the_phase_switch(tiny_scene, tmp_path):
+    """The warm-up term weighs the field's squared error as the joint phase's reconstruction
+    term does, so the field's gradients keep their scale when the rain terms take over. At
+    weight 1 they jumped 500x there, and Adam's second moments, tuned to the warm-up, let the
+    field take steps up to 6x its rate for hundreds of steps (docs/rain.md)."""
+    from rainyscape.engine.pipeline import build_pipeline
+    from rainyscape.engine.trainer import Trainer
+
+    cfg = config.method_config("rainyscape-nerf", [
+        "trainer.max_iters=8", "field.resolution_final=32", "rain_head.latent_steps=1",
+        "trainer.eval_every=0", "trainer.checkpoint_every=0", "trainer.progress=false"])
+    torch.manual_seed(0)
+    trainer = Trainer(build_pipeline(cfg, tiny_scene, torch.device("cpu")), tmp_path)
+    field = [p for g in trainer.groups["field"] for p in g.params]
+    norms: list[float] = []
+    first = trainer.groups["field"][0].name
+    trainer.optimizers[first].register_step_pre_hook(
+        lambda *_: norms.append(float(torch.linalg.vector_norm(torch.stack(
+            [p.grad.norm() for p in field if p.grad is not None])))))
+    trainer.train()
+    warmup, joint = norms[:4], norms[4:]  # warm-up: the first half of the run
+    assert len(joint) == 4
+    ratio = (sum(joint) / 4) / (sum(warmup[-2:]) / 2)
+    assert 0.2 < ratio < 5, (warmup, joint)

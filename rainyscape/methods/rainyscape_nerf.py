@@ -4,7 +4,7 @@
 Each is its plain counterpart (``nerf``, ``vanilla-nerf``: same field, data and iteration
 budget, read from it, never copied) plus the rain module: warm-up with the photometric loss
 alone, then the joint phase with the rain head, the four rain losses on square patches
-holding as many rays as a warm-up step (16 of 8 x 8 for ``nerf``'s 1024 on a CPU, the paper's
+holding as many rays as a warm-up step (64 of 4 x 4 for ``nerf``'s 1024 on a CPU, the paper's
 one 64 x 64 for 4096 on a GPU) and Langevin latent updates, and rain-mask fusion as
 post-processing. Plain data only: this
 module imports no torch.
@@ -25,9 +25,13 @@ PAPER_RAIN_HEAD_GPU = ["rain_head.lowres_channels=[512,256,128,128]", "rain_head
 
 
 def rain_losses(weights: dict[str, float], agr: dict | None = None) -> dict[str, LossConfig]:
-    """The photometric warm-up term and the four joint-phase rain terms."""
+    """The photometric warm-up term and the four joint-phase rain terms. The warm-up term
+    weighs the field's squared error as the joint phase's reconstruction term does: Adam
+    takes the same steps either way, and its second moments then carry over the switch at
+    the scale they will meet (at weight 1 the field's gradients jump 500x there, and for
+    hundreds of steps its steps were up to 6x its rate: docs/rain.md, "The warm-up's scale")."""
     return {
-        "photometric": LossConfig("photometric", weight=1.0, phases=("warmup",)),
+        "photometric": LossConfig("photometric", weight=weights["reconstruction"], phases=("warmup",)),
         "likelihood": LossConfig("likelihood", weight=weights["likelihood"]),
         "reconstruction": LossConfig("reconstruction", weight=weights["reconstruction"]),
         "tv": LossConfig("tv", weight=weights["tv"]),
@@ -46,16 +50,16 @@ def square_patch(rays: int) -> int:
 
 def with_rain_module(base: MethodSpec, name: str, *, weights: dict[str, float],
                      rain_head: dict, warmup_fraction: float, joint_patches: int = 1,
-                     field_lr_joint: float | None = None, field_lr_scale_joint: float = 1.0,
+                     field_lr_joint: float | None = None,
                      head_views: int = 0, agr: dict | None = None,
                      fusion: dict | None = None) -> PipelineConfig:
     """``base``'s config with the rain module added: its one ``fit`` phase becomes the
     warm-up (same batches) followed by the joint phase, in which the rain head predicts R
     on ``joint_patches`` square patches per step holding the rays of a warm-up step (the
     paper: one patch, 64 x 64 = 4096). In the joint phase the field's rates are fixed at
-    ``field_lr_joint`` (the paper's NeRF: 1e-6) or scaled by ``field_lr_scale_joint``; the
-    rain head also learns on ``head_views`` whole views a step against the field's cached
-    render (engine/render_cache.py)."""
+    ``field_lr_joint`` (the paper's NeRF: 1e-6) when given, else they go on; the rain head
+    also learns on ``head_views`` whole views a step against the field's cached render
+    (engine/render_cache.py)."""
     cfg = copy.deepcopy(base.config)
     cfg.method = name
     cfg.rain_head = ComponentConfig("rain-predictor", dict(rain_head))
@@ -64,8 +68,7 @@ def with_rain_module(base: MethodSpec, name: str, *, weights: dict[str, float],
         "warmup": PhaseConfig(end=warmup_fraction, patches=fit.patches, patch_size=fit.patch_size),
         "joint": PhaseConfig(patches=joint_patches,
                              patch_size=square_patch(fit.patches * fit.patch_size ** 2 // joint_patches),
-                             heads=("rain_head",), field_lr=field_lr_joint,
-                             field_lr_scale=field_lr_scale_joint, head_views=head_views),
+                             heads=("rain_head",), field_lr=field_lr_joint, head_views=head_views),
     }
     cfg.losses = rain_losses(weights, agr)
     cfg.postprocess = {"rain-mask-fusion": ComponentConfig("rain-mask-fusion", dict(fusion or {})),
@@ -81,14 +84,14 @@ rainyscape_nerf = MethodSpec(
         weights=PAPER_WEIGHTS,
         rain_head={"lowres_channels": (32, 32, 32, 32), "highres_channels": 16},
         warmup_fraction=0.5,
-        # nerf's 1024 rays as 16 patches of 8 x 8, not the paper's one patch: the under-fitted
-        # CPU field renders 0.57 dB better from the more varied batch (docs/rain.md)
-        joint_patches=16,
-        # the field slows down while the rain head learns (not frozen, as the paper's NeRF:
-        # this one is still fitting): 0.3x its rates gained 0.6 dB on real fern with heavy
-        # rain and 0.39 dB on the cpu set's training views; plain nerf with a faster decay
-        # gained nothing (docs/rain.md, issue 28, defect 3)
-        field_lr_scale_joint=0.3,
+        # nerf's 1024 rays as 64 patches of 4 x 4, not the paper's one patch: the field fits
+        # the dry pixels better from a batch as spread as the rain losses allow (AGR's 3 x 3
+        # gradients need 4 x 4); the rain head sees whole views below (docs/rain.md, "The
+        # warm-up's scale")
+        joint_patches=64,
+        # the field keeps its rates in the joint phase (not frozen, as the paper's NeRF: this
+        # one is still fitting); 0.3x them was worth 0.6 dB only while the warm-up's loss
+        # scale left Adam's steps too long after the switch (docs/rain.md, "The warm-up's scale")
         # a step's 1024 rays show the rain head each pixel about once a run: it also learns
         # on one whole view a step against the field's last render there (rain correlation
         # 0.07 -> 0.41 on real fern with heavy rain; docs/rain.md, "The rain head on a ray field")
