@@ -145,6 +145,23 @@ def test_plugin_rain_head_trains_through_a_builtin_rain_method(toy_env, tiny_sce
     assert not torch.equal(pipeline.rain_head.maps, torch.full_like(pipeline.rain_head.maps, -4.0))
 
 
+def _gradient_norms(trainer) -> dict[str, list[float]]:
+    """Each model's gradient norm at every step it takes (what its optimisers step on),
+    recorded from then on into the returned dict."""
+    norms: dict[str, list[float]] = {}
+
+    def record(key: str, params: list) -> None:
+        grads = [p.grad.norm() for p in params if p.grad is not None]
+        if grads:
+            norms.setdefault(key, []).append(float(torch.linalg.vector_norm(torch.stack(grads))))
+
+    for key, groups in trainer.groups.items():
+        params = [p for g in groups for p in g.params]
+        trainer.optimizers[groups[0].name].register_step_pre_hook(
+            lambda *_, key=key, params=params: record(key, params))
+    return norms
+
+
 @pytest.mark.parametrize("clip", [0.0, 1e-3])
 def test_phase_grad_clip_bounds_each_models_gradient_norm(tiny_scene, tmp_path, clip):
     """``phases.NAME.grad_clip``: what each model's optimisers step on has at most that norm
@@ -159,17 +176,7 @@ def test_phase_grad_clip_bounds_each_models_gradient_norm(tiny_scene, tmp_path, 
         "trainer.eval_every=0", "trainer.checkpoint_every=0", "trainer.progress=false"])
     torch.manual_seed(0)
     trainer = Trainer(build_pipeline(cfg, tiny_scene, torch.device("cpu")), tmp_path)
-    norms: dict[str, list[float]] = {}
-
-    def record(key: str, params: list) -> None:
-        grads = [p.grad.norm() for p in params if p.grad is not None]
-        if grads:
-            norms.setdefault(key, []).append(float(torch.linalg.vector_norm(torch.stack(grads))))
-
-    for key, groups in trainer.groups.items():
-        params = [p for g in groups for p in g.params]
-        for g in groups:
-            trainer.optimizers[g.name].register_step_pre_hook(lambda *_, key=key, params=params: record(key, params))
+    norms = _gradient_norms(trainer)
     trainer.train()
     joint = {key: values[-1] for key, values in norms.items()}  # the last step is a joint one
     assert {"field", "rain_head"} <= set(joint)
@@ -192,14 +199,9 @@ def test_rainyscape_nerf_field_gradients_keep_their_scale_across_the_phase_switc
         "trainer.eval_every=0", "trainer.checkpoint_every=0", "trainer.progress=false"])
     torch.manual_seed(0)
     trainer = Trainer(build_pipeline(cfg, tiny_scene, torch.device("cpu")), tmp_path)
-    field = [p for g in trainer.groups["field"] for p in g.params]
-    norms: list[float] = []
-    first = trainer.groups["field"][0].name
-    trainer.optimizers[first].register_step_pre_hook(
-        lambda *_: norms.append(float(torch.linalg.vector_norm(torch.stack(
-            [p.grad.norm() for p in field if p.grad is not None])))))
+    norms = _gradient_norms(trainer)
     trainer.train()
-    warmup, joint = norms[:4], norms[4:]  # warm-up: the first half of the run
+    warmup, joint = norms["field"][:4], norms["field"][4:]  # warm-up: the first half of the run
     assert len(joint) == 4
     ratio = (sum(joint) / 4) / (sum(warmup[-2:]) / 2)
     assert 0.2 < ratio < 5, (warmup, joint)
