@@ -140,3 +140,4 @@ def test_rs_bench_real_set_plans_every_strength_of_every_capture(tmp_path):
     ceiling = [c for c in cells if c.clean]
     assert len(ceiling) == 3 and "dataparser=transforms-json" in ceiling[0].overrides
     assert {b.pixels_per_step for b in plan.budgets.values()} == {252 * 189}
+    assert {b.steps for b in plan.budgets.values()} == {18 * 100}  # the 3DGS recipe: 100 a training view
