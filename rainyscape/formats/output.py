@@ -8,7 +8,7 @@ The rule every ``rs-*`` command follows:
   unless ``force=true``;
 - ``force=true`` replaces the whole output (every entry the command writes), never a part;
 - a failed command leaves the user's folders as they were: the output is built in a
-  temporary sibling (``.NAME.partial-XXXX``) and moved into place only when complete.
+  temporary sibling (``.NAME.partial-<random hex>``) and moved into place only when complete.
 
 :func:`check_can_create` and :func:`check_writable` are the early checks (before any work);
 :func:`staged_folder` is the build-aside-then-publish writer; :func:`os_error` turns an
@@ -27,7 +27,7 @@ from typing import Iterable, Iterator
 
 from rainyscape.errors import DataError
 
-STAGING_MARK = ".partial-"  # staging folders: .NAME.partial-XXXXXXXX beside the output
+STAGING_MARK = ".partial-"  # staging folders: .NAME.partial-<8 random hex digits> beside the output
 
 
 def os_error(path: Path | str, exc: OSError, doing: str = "") -> DataError:
@@ -155,7 +155,7 @@ def staged_folder(out: Path | str, replaces: Iterable[str], force: bool, writes:
 
 
 def new_staging(out: Path) -> Path:
-    """An empty, new staging folder beside ``out`` (``.NAME.partial-XXXXXXXX``)."""
+    """An empty, new staging folder beside ``out`` (``.NAME.partial-<8 random hex digits>``)."""
     while True:
         path = out.parent / f".{out.name}{STAGING_MARK}{secrets.token_hex(4)}"
         try:
