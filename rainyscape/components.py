@@ -185,7 +185,9 @@ class LossContext:
 
 class Loss:
     """A loss term: ``__call__(ctx) -> scalar``. ``phases`` are its default phases (used
-    where the method has them), ``needs`` the image layers it cannot do without.
+    where the method has them), ``needs`` the image layers it cannot do without, ``spatial``
+    whether it compares neighbouring pixels (a batch of single rays then tells it nothing:
+    where a phase's heads learn on whole views only, it acts there only).
 
     ``metrics`` may be filled during a call (floats) and is logged by the trainer.
     Stateful terms implement ``state_dict`` / ``load_state_dict`` for checkpoints.
@@ -193,6 +195,7 @@ class Loss:
 
     phases: tuple[str, ...] = ()
     needs: tuple[str, ...] = ()
+    spatial = False
     description = ""
 
     def __init__(self, config: Any = None):

@@ -109,7 +109,8 @@ def test_cells_run_in_parallel_then_resume_as_done(tmp_path, tiny_scene_dir):
     out = tmp_path / "results"
     args = ["rs-bench", "methods=nerf,rainyscape-nerf", f"scenes={tiny_scene_dir}", "iters=4", f"out={out}",
             "name=tiny", "device=cpu", "jobs=2", "threads=1", "trainer.eval_every=0",
-            "rainyscape-nerf:phases.joint.patches=1", "rainyscape-nerf:phases.joint.patch_size=16"]  # 256 rays a joint step against nerf's 1024
+            "rainyscape-nerf:phases.joint.patches=1", "rainyscape-nerf:phases.joint.patch_size=16",
+            "rainyscape-nerf:phases.joint.rays=0"]  # 256 rays a joint step against nerf's 1024
     refused = subprocess.run(args, capture_output=True, text=True)
     assert refused.returncode == 2 and "allow_unequal=true" in refused.stderr and not out.exists()
     args.append("allow_unequal=true")

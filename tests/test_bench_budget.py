@@ -15,7 +15,7 @@ from rainyscape.config import method_config
 from rainyscape.errors import ConfigError
 
 
-PAPER_PATCH = ("phases.joint.patches=1", "phases.joint.patch_size=64")  # one 64 x 64 patch
+PAPER_PATCH = ("phases.joint.patches=1", "phases.joint.patch_size=64", "phases.joint.rays=0")  # one 64 x 64 patch
 
 
 def _budget(method: str, *overrides: str, size: int = 128) -> Budget:
@@ -27,7 +27,7 @@ def test_budgets_of_the_real_methods():
     assert (nerf.family, nerf.steps, nerf.pixels_per_step) == ("grid", 100, 1024)
     robust = _budget("robust-nerf")  # 16 x 16 patches with nerf's rays per step
     assert robust.family == "grid" and robust.same_as(nerf)
-    ours = _budget("rainyscape-nerf")  # warm-up: nerf's rays; joint: 64 patches of 4 x 4, as many
+    ours = _budget("rainyscape-nerf")  # warm-up: nerf's rays; joint: 16 patches of 4 x 4 and 768 rays, as many
     assert [(p.name, p.steps, p.pixels) for p in ours.phases] == [("warmup", 50, 1024), ("joint", 50, 1024)]
     assert ours.same_as(nerf)
     paper = _budget("rainyscape-nerf", *PAPER_PATCH)  # the paper's 64 x 64 joint patch on nerf's warm-up

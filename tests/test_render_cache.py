@@ -1,6 +1,7 @@
 """The render cache (engine/render_cache.py): holes filled from the nearest rendered pixels,
 the newest render of a pixel kept, a whole view read back after a run of random rays, and a
-phase that trains heads on whole cached views."""
+phase that trains heads on whole cached views, and the layer cache with which a field's rays
+are fitted against the heads' last whole-view predictions."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import torch
 
 from rainyscape.cameras import Window
 from rainyscape.components import RenderOutput
-from rainyscape.engine.render_cache import RenderCache, box_sum, fill_holes
+from rainyscape.engine.render_cache import LayerCache, RenderCache, box_sum, fill_holes
 
 
 def _smooth(h: int = 24, w: int = 32) -> torch.Tensor:
@@ -67,6 +68,31 @@ def test_the_cache_keeps_the_newest_render_of_each_pixel_and_fills_the_rest():
     assert torch.equal(restored.read(view, whole).rgb, cache.read(view, whole).rgb)
 
 
+def test_the_layer_cache_predicts_a_view_whole_once_and_reads_any_window_of_it():
+    calls = []
+
+    def predict(views, window):  # a view's layer: its index plus a ramp across the image
+        calls.append((views.tolist(), window.width, window.height))
+        ramp = torch.arange(8.0) / 8
+        return (views.float().view(-1, 1, 1, 1) + ramp).expand(-1, 3, 6, -1)
+
+    cache = LayerCache(views=3, height=6, width=8)
+    rays = Window(torch.tensor([5, 1, 7]), torch.tensor([0, 3, 5]), 1, 1)
+    got = cache.read(torch.tensor([2, 2, 0]), rays, predict)
+    assert calls == [([0, 2], 8, 6)]  # the missing views, each once, whole
+    assert got.shape == (3, 3, 1, 1)
+    assert torch.allclose(got[:, 0, 0, 0], torch.tensor([2 + 5 / 8, 2 + 1 / 8, 7 / 8]), atol=1e-2)
+    patch = Window(torch.tensor([2]), torch.tensor([1]), 4, 3)
+    assert torch.allclose(cache.read(torch.tensor([0]), patch, predict)[0, 1, 2], torch.arange(2.0, 6) / 8)
+    assert len(calls) == 1  # known views are read, not predicted again
+    cache.write(torch.tensor([2]), torch.full((1, 3, 6, 8), 0.5))  # a newer prediction replaces it
+    assert torch.allclose(cache.read(torch.tensor([2]), rays[0], predict), torch.tensor(0.5))
+    restored = LayerCache(views=3, height=6, width=8)
+    restored.load_state_dict(cache.state_dict())
+    assert torch.equal(restored.read(torch.tensor([0, 2]), patch, predict), cache.read(torch.tensor([0, 2]), patch, predict))
+    assert len(calls) == 1
+
+
 SMALL = ["trainer.max_iters=8", "phases.warmup.end=0.5", "phases.warmup.patches=64",
          "phases.joint.patch_size=8", "field.resolution_final=32", "trainer.device=cpu",
          "trainer.progress=false", "trainer.eval_every=0", "trainer.checkpoint_every=0", "trainer.log_every=1"]
@@ -88,7 +114,8 @@ def test_a_phase_with_head_views_trains_the_head_on_whole_cached_views(tiny_scen
     terms = _joint_terms(on.run_dir)
     assert {"cached_views.reconstruction", "cached_views.likelihood"} <= set(terms)
     off = train_and_evaluate(config.method_config(
-        "rainyscape-nerf", common + ["phases.joint.head_views=0", f"trainer.output_dir={tmp_path}/off"]))
+        "rainyscape-nerf", common + ["phases.joint.head_views=0", "phases.joint.rays=0",
+                                     f"trainer.output_dir={tmp_path}/off"]))
     assert not any(k.startswith("cached_views.") for k in _joint_terms(off.run_dir))
 
 
@@ -101,3 +128,104 @@ def test_head_views_without_heads_is_a_config_error(tiny_scene_dir, tmp_path):
                                         f"trainer.output_dir={tmp_path}", "trainer.max_iters=8", *SMALL[4:]])
     with pytest.raises(ConfigError, match="head_views"):
         train_and_evaluate(cfg)
+
+
+# the joint phase as rays: the field's batch single rays, the rain head on one whole view a step
+RAYS_JOINT = ["phases.joint.patches=64", "phases.joint.patch_size=1", "phases.joint.head_batch=false",
+              "phases.joint.rays=0", "phases.joint.head_views=1", "rain_head.latent_patch_size=16"]
+
+
+def test_heads_on_whole_views_only_leave_the_spatial_terms_there_and_fit_the_field_on_rays(
+        tiny_scene_dir, tmp_path):
+    import json
+
+    from rainyscape import config
+    from rainyscape.workflow import train_and_evaluate
+
+    cfg = config.method_config("rainyscape-nerf", [f"data={tiny_scene_dir}", *SMALL, *RAYS_JOINT,
+                                                   f"trainer.output_dir={tmp_path}"])
+    run = train_and_evaluate(cfg)
+    terms = _joint_terms(run.run_dir)
+    # the rays: the per-pixel terms, against the head's cached rain; TV and AGR on whole views only
+    assert {"likelihood", "reconstruction"} <= set(terms) and not {"tv", "agr"} & set(terms)
+    assert {"cached_views.tv", "cached_views.agr", "cached_views.reconstruction"} <= set(terms)
+    # the angles logged are the whole view's (the network update's), one view a step
+    records = [json.loads(line) for line in (run.run_dir / "log.jsonl").read_text().splitlines()]
+    angles = [r["metrics"] for r in records if r.get("phase") == "joint" and "metrics" in r]
+    assert angles and all(len({k.split("/")[1] for k in m if k.startswith("agr.streak")}) <= 1 for m in angles)
+
+
+def test_the_field_on_rays_fits_the_input_less_the_cached_rain(tiny_scene, tmp_path):
+    """One joint step by hand: the batch's reconstruction (against the cache's rain, a
+    constant) trains the field; the whole view trains the head."""
+    from rainyscape import config
+    from rainyscape.engine.pipeline import build_pipeline
+    from rainyscape.engine.trainer import Trainer
+
+    cfg = config.method_config("rainyscape-nerf", [*SMALL, *RAYS_JOINT, "phases.warmup.end=0.0",
+                                                   "losses.likelihood.weight=0", "losses.tv.weight=0",
+                                                   "losses.agr.weight=0"])
+    pipeline = build_pipeline(cfg, tiny_scene, torch.device("cpu"))
+    trainer = Trainer(pipeline, tmp_path)
+    trainer.render_cache.known.fill_(True)  # a cached render everywhere (zeros)
+    head = pipeline.rain_head
+    before = {n: p.detach().clone() for n, p in head.named_parameters()}
+    field_before = [p.detach().clone() for g in trainer.groups["field"] for p in g.params]
+    record = trainer.train_step()
+    assert set(record["terms"]) == {"reconstruction", "cached_views.reconstruction"}
+    assert trainer.layer_caches["rain"].known.any()  # the batch's views, predicted whole
+    moved = [n for n, p in head.named_parameters() if not torch.equal(p, before[n])]
+    assert moved  # the head learned on the whole view
+    field_after = [p.detach() for g in trainer.groups["field"] for p in g.params]
+    assert any(not torch.equal(a, b) for a, b in zip(field_before, field_after))
+
+
+def test_heads_off_the_batch_need_whole_views(tiny_scene_dir, tmp_path):
+    from rainyscape import config
+    from rainyscape.errors import ConfigError
+    from rainyscape.workflow import train_and_evaluate
+
+    cfg = config.method_config("rainyscape-nerf", [f"data={tiny_scene_dir}", *SMALL, *RAYS_JOINT,
+                                                   "phases.joint.head_views=0", f"trainer.output_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match="head_views"):
+        train_and_evaluate(cfg)
+
+
+# the recipe's mixed joint batch, small: patches for every term, single rays for the per-pixel ones
+MIXED_JOINT = ["phases.joint.patches=4", "phases.joint.patch_size=4", "phases.joint.rays=64"]
+
+
+def test_a_joint_step_with_rays_gives_them_the_per_pixel_terms_only(tiny_scene_dir, tmp_path):
+    from rainyscape import config
+    from rainyscape.workflow import train_and_evaluate
+
+    cfg = config.method_config("rainyscape-nerf", [f"data={tiny_scene_dir}", *SMALL, *MIXED_JOINT,
+                                                   f"trainer.output_dir={tmp_path}"])
+    terms = _joint_terms(train_and_evaluate(cfg).run_dir)
+    assert {"likelihood", "reconstruction", "tv", "agr"} <= set(terms)  # the patches
+    assert {k for k in terms if k.startswith("rays.")} == {"rays.likelihood", "rays.reconstruction"}
+    assert {"cached_views.reconstruction", "cached_views.agr"} <= set(terms)
+
+
+def test_rays_fit_the_field_to_the_input_less_the_cached_rain_and_leave_the_head_alone(tiny_scene, tmp_path):
+    from rainyscape import config
+    from rainyscape.engine.pipeline import build_pipeline
+    from rainyscape.engine.trainer import Trainer
+
+    cfg = config.method_config("rainyscape-nerf", [*SMALL, *MIXED_JOINT, "phases.warmup.end=0.0"])
+    pipeline = build_pipeline(cfg, tiny_scene, torch.device("cpu"))
+    trainer = Trainer(pipeline, tmp_path)
+    name, phase = trainer.phases.at(0)
+    views = torch.arange(tiny_scene.num_images)
+    losses = {}
+    for rain in (0.0, 0.3):
+        trainer.generator.manual_seed(5)  # the same rays
+        trainer.layer_caches["rain"].write(views, torch.full((len(views), 3, tiny_scene.height, tiny_scene.width), rain))
+        pipeline.field.zero_grad(set_to_none=True)
+        total, values = trainer._ray_losses(name, phase, [pipeline.rain_head], pipeline.loss_terms(name))
+        total.backward()
+        assert set(values) == {"likelihood", "reconstruction"}
+        assert all(p.grad is None for p in pipeline.rain_head.parameters())
+        assert any(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in pipeline.field.parameters())
+        losses[rain] = values["reconstruction"]
+    assert losses[0.0] != pytest.approx(losses[0.3])  # the cached rain is what the rays are fitted against

@@ -3,7 +3,8 @@ computed from its typed config before anything trains, and the check that method
 field see the same budget.
 
 A step of phase ``p`` sees ``p.patches`` windows of ``p.patch_size``² pixels, or of
-``width x height`` pixels when ``patch_size`` is 0 (whole views). The budget of a run is its
+``width x height`` pixels when ``patch_size`` is 0 (whole views), and ``p.rays`` single
+rays besides. The budget of a run is its
 step count and the mean pixels per step over the run, each phase weighted by the steps it
 runs (``rainyscape.engine.phases.PhaseSchedule``, as the trainer schedules it).
 
@@ -65,7 +66,7 @@ class Budget:
 
 def phase_pixels(phase: PhaseConfig, width: int, height: int) -> int:
     """Pixels (rays) one step of ``phase`` sees on ``width`` x ``height`` images."""
-    return phase.patches * (width * height if phase.patch_size == 0 else phase.patch_size ** 2)
+    return phase.patches * (width * height if phase.patch_size == 0 else phase.patch_size ** 2) + phase.rays
 
 
 def cell_budget(cfg: PipelineConfig, width: int, height: int, train_views: int) -> Budget:

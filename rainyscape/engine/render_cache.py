@@ -7,6 +7,9 @@ little rain (docs/rain.md, "The rain head on a ray field"). The cache holds, per
 colour and depth the field last rendered there (detached). Where it never rendered, the
 nearest rendered pixels stand in (:func:`fill_holes`): after a warm-up of random rays about
 half the pixels are known, and a background is smooth next to rain streaks a pixel wide.
+
+:class:`LayerCache` is the other way round: a head's last whole-view prediction, for a
+field's batch of single rays that the head does not predict on (``phases.NAME.head_batch``).
 """
 
 from __future__ import annotations
@@ -92,4 +95,44 @@ class RenderCache:
 
     def load_state_dict(self, state: dict) -> None:
         for key in ("rgb", "depth", "known"):
+            getattr(self, key).copy_(state[key])
+
+
+class LayerCache:
+    """Per view: a head's last whole-view prediction (detached), for batches it does not
+    predict on (``phases.NAME.head_batch=false``). A view not yet predicted is predicted
+    whole when first read."""
+
+    def __init__(self, views: int, height: int, width: int, channels: int = 3,
+                 device: torch.device | str = "cpu"):
+        # half precision, as the render cache: rain is tenths, the rounding thousandths of it
+        self.values = torch.zeros(views, height, width, channels, dtype=torch.float16, device=device)
+        self.known = torch.zeros(views, dtype=torch.bool, device=device)
+
+    @torch.no_grad()
+    def write(self, view_ids: Tensor, layers: Tensor) -> None:
+        """Keep whole-view predictions (B, C, H, W) of the views ``view_ids`` (of a view
+        given twice, the later)."""
+        for i, v in enumerate(view_ids.tolist()):
+            self.values[v] = layers[i].detach().permute(1, 2, 0).to(self.values.dtype)
+            self.known[v] = True
+
+    @torch.no_grad()
+    def read(self, view_ids: Tensor, window: Window, predict) -> Tensor:
+        """The cached layer (B, C, h, w, float32) at ``window`` of the views; views never
+        predicted are first predicted whole by ``predict(view_ids, window)``."""
+        views = view_ids.to(self.known.device)
+        missing = torch.unique(views[~self.known[views]])
+        if len(missing):
+            height, width = self.values.shape[1:3]
+            zeros = torch.zeros(len(missing), dtype=torch.long)
+            self.write(missing, predict(missing, Window(zeros, zeros.clone(), width, height)))
+        xs, ys = window.pixel_grid(self.values.device)
+        return self.values[views[:, None, None], ys, xs].permute(0, 3, 1, 2).float()
+
+    def state_dict(self) -> dict:
+        return {"values": self.values, "known": self.known}
+
+    def load_state_dict(self, state: dict) -> None:
+        for key in ("values", "known"):
             getattr(self, key).copy_(state[key])

@@ -9,14 +9,14 @@ exactly. Everything is tensors and plain Python values: checkpoints load with
 from __future__ import annotations
 
 import random
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from torch import nn
 
 from rainyscape.components import Callback, Loss
-from rainyscape.engine.render_cache import RenderCache
+from rainyscape.engine.render_cache import LayerCache, RenderCache
 
 
 @dataclass
@@ -29,6 +29,7 @@ class TrainingParts:
     callbacks: list[Callback]
     generator: torch.Generator  # the batch sampler's
     render_cache: RenderCache | None = None  # the field's last renders, where a phase uses them
+    layer_caches: dict[str, LayerCache] = field(default_factory=dict)  # the heads' last whole views, by layer
 
 
 def rng_state() -> dict:
@@ -64,6 +65,7 @@ def capture(step: int, parts: TrainingParts) -> dict:
         "callbacks": [cb.state_dict() for cb in parts.callbacks],
         "rng": {"sampler": parts.generator.get_state(), **rng_state()},
         "render_cache": parts.render_cache.state_dict() if parts.render_cache is not None else None,
+        "layer_caches": {k: c.state_dict() for k, c in parts.layer_caches.items()},
     }
 
 
@@ -86,5 +88,8 @@ def restore_rest(state: dict, parts: TrainingParts) -> None:
         cb.load_state_dict(cb_state)
     if parts.render_cache is not None and state.get("render_cache") is not None:
         parts.render_cache.load_state_dict(state["render_cache"])
+    for k, cache in parts.layer_caches.items():
+        if k in state.get("layer_caches", {}):
+            cache.load_state_dict(state["layer_caches"][k])
     parts.generator.set_state(state["rng"]["sampler"].cpu())
     set_rng_state(state["rng"])

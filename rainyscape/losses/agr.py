@@ -54,6 +54,7 @@ class AdaptiveGradientRotation(Loss):
 
     description = "agr: adaptive gradient rotation loss along the estimated rain direction(s)"
     phases = ("joint",)
+    spatial = True
     needs = ("rain",)
 
     @dataclass

@@ -23,6 +23,7 @@ class L1SSIM(Loss):
 
     description = "3DGS loss: 0.8 L1 + 0.2 D-SSIM vs the rainy input (optionally of B + R)"
     phases = ()  # every phase of the method
+    spatial = True
 
     @dataclass
     class Config:

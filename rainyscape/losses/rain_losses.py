@@ -95,6 +95,7 @@ class TotalVariation(Loss):
 
     description = "tv: L1 total variation of the render B"
     phases = ("joint",)
+    spatial = True
 
     @dataclass
     class Config:

@@ -86,6 +86,7 @@ class RobustNeRFLoss(Loss):
 
     description = "RobustNeRF: trimmed L2 over 16 x 16 patches (per-pixel test, 3 x 3 and patch smoothing)"
     phases = ()  # every phase of the method
+    spatial = True
 
     @dataclass
     class Config:

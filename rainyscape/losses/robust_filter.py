@@ -119,6 +119,7 @@ class RobustFilter(Loss):
 
     description = "SpotLessSplats' RobustFilter: L1 on pixels below a running 70th-percentile error (3 x 3 smoothed, blended in)"
     phases = ()  # every phase of the method
+    spatial = True
 
     @dataclass
     class Config:

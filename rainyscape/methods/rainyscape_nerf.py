@@ -4,10 +4,10 @@
 Each is its plain counterpart (``nerf``, ``vanilla-nerf``: same field, data and iteration
 budget, read from it, never copied) plus the rain module: warm-up with the photometric loss
 alone, then the joint phase with the rain head, the four rain losses on square patches
-holding as many rays as a warm-up step (64 of 4 x 4 for ``nerf``'s 1024 on a CPU, the paper's
-one 64 x 64 for 4096 on a GPU) and Langevin latent updates, and rain-mask fusion as
-post-processing. Plain data only: this
-module imports no torch.
+and Langevin latent updates, and rain-mask fusion as post-processing. A joint step sees as
+many rays as a warm-up step: on a CPU ``nerf``'s 1024 as 16 patches of 4 x 4 and 768 single
+rays (the field fits those against the head's last whole-view R), on a GPU the paper's one
+64 x 64 patch of 4096. Plain data only: this module imports no torch.
 """
 
 from __future__ import annotations
@@ -50,25 +50,28 @@ def square_patch(rays: int) -> int:
 
 def with_rain_module(base: MethodSpec, name: str, *, weights: dict[str, float],
                      rain_head: dict, warmup_fraction: float, joint_patches: int = 1,
-                     field_lr_joint: float | None = None,
+                     joint_rays: int = 0, field_lr_joint: float | None = None,
                      head_views: int = 0, agr: dict | None = None,
                      fusion: dict | None = None) -> PipelineConfig:
     """``base``'s config with the rain module added: its one ``fit`` phase becomes the
     warm-up (same batches) followed by the joint phase, in which the rain head predicts R
     on ``joint_patches`` square patches per step holding the rays of a warm-up step (the
-    paper: one patch, 64 x 64 = 4096). In the joint phase the field's rates are fixed at
-    ``field_lr_joint`` (the paper's NeRF: 1e-6) when given, else they go on; the rain head
-    also learns on ``head_views`` whole views a step against the field's cached render
+    paper: one patch, 64 x 64 = 4096), less ``joint_rays`` single rays that fit the field to
+    the input less the head's last whole-view R (``phases.joint.rays``; needs
+    ``head_views``). In the joint phase the field's rates are fixed at ``field_lr_joint``
+    (the paper's NeRF: 1e-6) when given, else they go on; the rain head also learns on
+    ``head_views`` whole views a step against the field's cached render
     (engine/render_cache.py)."""
     cfg = copy.deepcopy(base.config)
     cfg.method = name
     cfg.rain_head = ComponentConfig("rain-predictor", dict(rain_head))
     fit = cfg.phases["fit"]
+    patch_rays = fit.patches * fit.patch_size ** 2 - joint_rays
     cfg.phases = {
         "warmup": PhaseConfig(end=warmup_fraction, patches=fit.patches, patch_size=fit.patch_size),
-        "joint": PhaseConfig(patches=joint_patches,
-                             patch_size=square_patch(fit.patches * fit.patch_size ** 2 // joint_patches),
-                             heads=("rain_head",), field_lr=field_lr_joint, head_views=head_views),
+        "joint": PhaseConfig(patches=joint_patches, patch_size=square_patch(patch_rays // joint_patches),
+                             rays=joint_rays, heads=("rain_head",), field_lr=field_lr_joint,
+                             head_views=head_views),
     }
     cfg.losses = rain_losses(weights, agr)
     cfg.postprocess = {"rain-mask-fusion": ComponentConfig("rain-mask-fusion", dict(fusion or {})),
@@ -84,11 +87,13 @@ rainyscape_nerf = MethodSpec(
         weights=PAPER_WEIGHTS,
         rain_head={"lowres_channels": (32, 32, 32, 32), "highres_channels": 16},
         warmup_fraction=0.5,
-        # nerf's 1024 rays as 64 patches of 4 x 4, not the paper's one patch: the field fits
-        # the dry pixels better from a batch as spread as the rain losses allow (AGR's 3 x 3
-        # gradients need 4 x 4); the rain head sees whole views below (docs/rain.md, "The
-        # warm-up's scale")
-        joint_patches=64,
+        # nerf's 1024 rays as 16 patches of 4 x 4 and 768 single rays, not the paper's one
+        # patch: the field fits the dry pixels from rays (patches cost a grid field up to
+        # 3 dB), and TV and AGR, which need neighbours (4 x 4 for AGR's 3 x 3 gradients),
+        # keep pushing static rain out of B on the patches (docs/rain.md, "Rays and patches
+        # in the joint phase")
+        joint_patches=16,
+        joint_rays=768,
         # the field keeps its rates in the joint phase (not frozen, as the paper's NeRF: this
         # one is still fitting); 0.3x them was worth 0.6 dB only while the warm-up's loss
         # scale left Adam's steps too long after the switch (docs/rain.md, "The warm-up's scale")
@@ -97,9 +102,11 @@ rainyscape_nerf = MethodSpec(
         # 0.07 -> 0.41 on real fern with heavy rain; docs/rain.md, "The rain head on a ray field")
         head_views=1,
     ),
-    # nerf's GPU rays in both phases: the joint ones as one patch (the paper's 64 x 64)
+    # nerf's GPU rays in both phases: the joint ones as one patch (the paper's 64 x 64; the
+    # CPU recipe's rays not carried over unmeasured)
     gpu=NERF_GPU + PAPER_RAIN_HEAD_GPU + [f"phases.warmup.patches={NERF_GPU_RAYS}", "phases.joint.patches=1",
-                                          f"phases.joint.patch_size={square_patch(NERF_GPU_RAYS)}"],
+                                          f"phases.joint.patch_size={square_patch(NERF_GPU_RAYS)}",
+                                          "phases.joint.rays=0"],
 )
 
 rainyscape_vanilla_nerf = MethodSpec(
