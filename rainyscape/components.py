@@ -186,8 +186,8 @@ class LossContext:
 class Loss:
     """A loss term: ``__call__(ctx) -> scalar``. ``phases`` are its default phases (used
     where the method has them), ``needs`` the image layers it cannot do without, ``spatial``
-    whether it compares neighbouring pixels (a batch of single rays then tells it nothing:
-    where a phase's heads learn on whole views only, it acts there only).
+    whether it compares neighbouring pixels (a phase's single rays, ``PhaseConfig.rays``, do
+    not feed it).
 
     ``metrics`` may be filled during a call (floats) and is logged by the trainer.
     Stateful terms implement ``state_dict`` / ``load_state_dict`` for checkpoints.

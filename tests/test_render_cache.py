@@ -1,7 +1,7 @@
 """The render cache (engine/render_cache.py): holes filled from the nearest rendered pixels,
 the newest render of a pixel kept, a whole view read back after a run of random rays, and a
-phase that trains heads on whole cached views, and the layer cache with which a field's rays
-are fitted against the heads' last whole-view predictions."""
+phase that trains heads on whole cached views, and the layer cache against whose whole-view
+predictions a phase's single rays fit the field."""
 
 from __future__ import annotations
 
@@ -91,6 +91,9 @@ def test_the_layer_cache_predicts_a_view_whole_once_and_reads_any_window_of_it()
     restored.load_state_dict(cache.state_dict())
     assert torch.equal(restored.read(torch.tensor([0, 2]), patch, predict), cache.read(torch.tensor([0, 2]), patch, predict))
     assert len(calls) == 1
+    # a layer of any channel count (an occluding head's colour and alpha)
+    four = LayerCache(views=2, height=6, width=8)
+    assert four.read(torch.tensor([1]), rays[:1], lambda v, w: torch.ones(len(v), 4, 6, 8)).shape == (1, 4, 1, 1)
 
 
 SMALL = ["trainer.max_iters=8", "phases.warmup.end=0.5", "phases.warmup.patches=64",
@@ -126,67 +129,6 @@ def test_head_views_without_heads_is_a_config_error(tiny_scene_dir, tmp_path):
 
     cfg = config.method_config("nerf", [f"data={tiny_scene_dir}", "phases.fit.head_views=1",
                                         f"trainer.output_dir={tmp_path}", "trainer.max_iters=8", *SMALL[4:]])
-    with pytest.raises(ConfigError, match="head_views"):
-        train_and_evaluate(cfg)
-
-
-# the joint phase as rays: the field's batch single rays, the rain head on one whole view a step
-RAYS_JOINT = ["phases.joint.patches=64", "phases.joint.patch_size=1", "phases.joint.head_batch=false",
-              "phases.joint.rays=0", "phases.joint.head_views=1", "rain_head.latent_patch_size=16"]
-
-
-def test_heads_on_whole_views_only_leave_the_spatial_terms_there_and_fit_the_field_on_rays(
-        tiny_scene_dir, tmp_path):
-    import json
-
-    from rainyscape import config
-    from rainyscape.workflow import train_and_evaluate
-
-    cfg = config.method_config("rainyscape-nerf", [f"data={tiny_scene_dir}", *SMALL, *RAYS_JOINT,
-                                                   f"trainer.output_dir={tmp_path}"])
-    run = train_and_evaluate(cfg)
-    terms = _joint_terms(run.run_dir)
-    # the rays: the per-pixel terms, against the head's cached rain; TV and AGR on whole views only
-    assert {"likelihood", "reconstruction"} <= set(terms) and not {"tv", "agr"} & set(terms)
-    assert {"cached_views.tv", "cached_views.agr", "cached_views.reconstruction"} <= set(terms)
-    # the angles logged are the whole view's (the network update's), one view a step
-    records = [json.loads(line) for line in (run.run_dir / "log.jsonl").read_text().splitlines()]
-    angles = [r["metrics"] for r in records if r.get("phase") == "joint" and "metrics" in r]
-    assert angles and all(len({k.split("/")[1] for k in m if k.startswith("agr.streak")}) <= 1 for m in angles)
-
-
-def test_the_field_on_rays_fits_the_input_less_the_cached_rain(tiny_scene, tmp_path):
-    """One joint step by hand: the batch's reconstruction (against the cache's rain, a
-    constant) trains the field; the whole view trains the head."""
-    from rainyscape import config
-    from rainyscape.engine.pipeline import build_pipeline
-    from rainyscape.engine.trainer import Trainer
-
-    cfg = config.method_config("rainyscape-nerf", [*SMALL, *RAYS_JOINT, "phases.warmup.end=0.0",
-                                                   "losses.likelihood.weight=0", "losses.tv.weight=0",
-                                                   "losses.agr.weight=0"])
-    pipeline = build_pipeline(cfg, tiny_scene, torch.device("cpu"))
-    trainer = Trainer(pipeline, tmp_path)
-    trainer.render_cache.known.fill_(True)  # a cached render everywhere (zeros)
-    head = pipeline.rain_head
-    before = {n: p.detach().clone() for n, p in head.named_parameters()}
-    field_before = [p.detach().clone() for g in trainer.groups["field"] for p in g.params]
-    record = trainer.train_step()
-    assert set(record["terms"]) == {"reconstruction", "cached_views.reconstruction"}
-    assert trainer.layer_caches["rain"].known.any()  # the batch's views, predicted whole
-    moved = [n for n, p in head.named_parameters() if not torch.equal(p, before[n])]
-    assert moved  # the head learned on the whole view
-    field_after = [p.detach() for g in trainer.groups["field"] for p in g.params]
-    assert any(not torch.equal(a, b) for a, b in zip(field_before, field_after))
-
-
-def test_heads_off_the_batch_need_whole_views(tiny_scene_dir, tmp_path):
-    from rainyscape import config
-    from rainyscape.errors import ConfigError
-    from rainyscape.workflow import train_and_evaluate
-
-    cfg = config.method_config("rainyscape-nerf", [f"data={tiny_scene_dir}", *SMALL, *RAYS_JOINT,
-                                                   "phases.joint.head_views=0", f"trainer.output_dir={tmp_path}"])
     with pytest.raises(ConfigError, match="head_views"):
         train_and_evaluate(cfg)
 
@@ -229,3 +171,14 @@ def test_rays_fit_the_field_to_the_input_less_the_cached_rain_and_leave_the_head
         assert any(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in pipeline.field.parameters())
         losses[rain] = values["reconstruction"]
     assert losses[0.0] != pytest.approx(losses[0.3])  # the cached rain is what the rays are fitted against
+
+
+def test_rays_with_heads_need_whole_views(tiny_scene_dir, tmp_path):
+    from rainyscape import config
+    from rainyscape.errors import ConfigError
+    from rainyscape.workflow import train_and_evaluate
+
+    cfg = config.method_config("rainyscape-nerf", [f"data={tiny_scene_dir}", *SMALL, *MIXED_JOINT,
+                                                   "phases.joint.head_views=0", f"trainer.output_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match="head_views"):
+        train_and_evaluate(cfg)

@@ -165,10 +165,6 @@ class PhaseConfig:
     # against the field's cached render of them (engine/render_cache.py); for ray fields,
     # whose batches show a head each pixel about once a run (0: off)
     head_views: int = bounded(0, 0, 64)
-    # False: the heads predict on those whole views only, and the field's batch (single rays
-    # may do) is fitted against the input less the heads' last whole-view prediction; the
-    # spatial loss terms act on the whole views only
-    head_batch: bool = True
     # ray fields: a step also fits this many single random rays to the input less the heads'
     # last whole-view layers (the per-pixel terms only; needs head_views); its loss is the
     # pixel-weighted mean over the windows and the rays

@@ -68,10 +68,9 @@ def check_layers(config: PipelineConfig, heads: dict[str, ImageHead],
         if phase.head_views and not phase.heads:
             raise ConfigError(f"phases.{name}.head_views={phase.head_views}: the phase has no heads "
                               f"to learn on whole views (set phases.{name}.heads, or head_views=0)")
-        if phase.heads and (phase.rays or not phase.head_batch) and not phase.head_views:
-            what = f"rays={phase.rays}" if phase.rays else "head_batch=false"
-            raise ConfigError(f"phases.{name}.{what}: those rays are fitted against the heads' last "
-                              f"whole-view predictions, and the phase makes none "
+        if phase.heads and phase.rays and not phase.head_views:
+            raise ConfigError(f"phases.{name}.rays={phase.rays}: those rays are fitted against the "
+                              f"heads' last whole-view predictions, and the phase makes none "
                               f"(set phases.{name}.head_views >= 1)")
         layers = {heads[h].layer for h in phase.heads}
         for key, (cfg, term) in losses.items():

@@ -9,7 +9,7 @@ nearest rendered pixels stand in (:func:`fill_holes`): after a warm-up of random
 half the pixels are known, and a background is smooth next to rain streaks a pixel wide.
 
 :class:`LayerCache` is the other way round: a head's last whole-view prediction, for a
-field's batch of single rays that the head does not predict on (``phases.NAME.head_batch``).
+field's single rays that the head does not predict on (``phases.NAME.rays``).
 """
 
 from __future__ import annotations
@@ -99,20 +99,23 @@ class RenderCache:
 
 
 class LayerCache:
-    """Per view: a head's last whole-view prediction (detached), for batches it does not
-    predict on (``phases.NAME.head_batch=false``). A view not yet predicted is predicted
-    whole when first read."""
+    """Per view: a head's last whole-view prediction (detached), for rays it does not predict
+    on (``phases.NAME.rays``). A view not yet predicted is predicted whole when first read."""
 
-    def __init__(self, views: int, height: int, width: int, channels: int = 3,
-                 device: torch.device | str = "cpu"):
-        # half precision, as the render cache: rain is tenths, the rounding thousandths of it
-        self.values = torch.zeros(views, height, width, channels, dtype=torch.float16, device=device)
+    def __init__(self, views: int, height: int, width: int, device: torch.device | str = "cpu"):
+        self.size = (height, width)
+        # (views, H, W, C), made at the first write (C is the head's); half precision, as the
+        # render cache: rain is tenths, the rounding thousandths of it
+        self.values: Tensor | None = None
         self.known = torch.zeros(views, dtype=torch.bool, device=device)
 
     @torch.no_grad()
     def write(self, view_ids: Tensor, layers: Tensor) -> None:
         """Keep whole-view predictions (B, C, H, W) of the views ``view_ids`` (of a view
         given twice, the later)."""
+        if self.values is None:
+            self.values = torch.zeros(len(self.known), *self.size, layers.shape[1], dtype=torch.float16,
+                                      device=self.known.device)
         for i, v in enumerate(view_ids.tolist()):
             self.values[v] = layers[i].detach().permute(1, 2, 0).to(self.values.dtype)
             self.known[v] = True
@@ -124,9 +127,8 @@ class LayerCache:
         views = view_ids.to(self.known.device)
         missing = torch.unique(views[~self.known[views]])
         if len(missing):
-            height, width = self.values.shape[1:3]
             zeros = torch.zeros(len(missing), dtype=torch.long)
-            self.write(missing, predict(missing, Window(zeros, zeros.clone(), width, height)))
+            self.write(missing, predict(missing, Window(zeros, zeros.clone(), self.size[1], self.size[0])))
         xs, ys = window.pixel_grid(self.values.device)
         return self.values[views[:, None, None], ys, xs].permute(0, 3, 1, 2).float()
 
@@ -134,5 +136,6 @@ class LayerCache:
         return {"values": self.values, "known": self.known}
 
     def load_state_dict(self, state: dict) -> None:
-        for key in ("values", "known"):
-            getattr(self, key).copy_(state[key])
+        values = state["values"]
+        self.values = None if values is None else values.to(self.known.device, torch.float16).clone()
+        self.known.copy_(state["known"])

@@ -44,11 +44,6 @@ def crop_output(output: RenderOutput | None, local: Window) -> RenderOutput | No
     return RenderOutput(**cut)
 
 
-def term_metrics(terms) -> dict[str, float]:
-    """What the loss terms recorded on their last recording call, as ``KEY.METRIC``."""
-    return {f"{key}.{mk}": mv for key, (_, term) in terms.items() for mk, mv in term.metrics.items()}
-
-
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -86,11 +81,11 @@ class Trainer:
         # the field's last render of every view, for heads that learn on whole views
         self.render_cache = (RenderCache(len(self.images), self.scene.height, self.scene.width, self.device)
                              if any(p.head_views for p in pipeline.config.phases.values()) else None)
-        # the heads' last whole-view predictions, for phases whose batches they do not predict on
+        # the heads' last whole-view predictions, for the single rays of phases that have them
         self.layer_caches = {head.layer: LayerCache(len(self.images), self.scene.height, self.scene.width,
                                                     device=self.device)
                              for key, head in self.pipeline.heads.items()
-                             if any(key in p.heads and (not p.head_batch or p.rays) for p in pipeline.config.phases.values())}
+                             if any(key in p.heads and p.rays for p in pipeline.config.phases.values())}
         self.last_save = time.monotonic()
 
     # ------------------------------------------------------------------ set-up
@@ -140,31 +135,24 @@ class Trainer:
         if self.render_cache is not None:
             self.render_cache.write(view_ids, window, out)
         heads = [self.pipeline.heads[key] for key in phase.heads]
+        layers: dict[str, Tensor] = {}
         for head in heads:
             head.train()
-        terms = self.pipeline.loss_terms(name)
-        if phase.head_batch:
-            layers = {head.layer: head(view_ids.to(self.device), window) for head in heads}
-            batch_terms = terms
-        else:  # the heads' last whole views stand in; the spatial terms act on whole views only
-            layers = {head.layer: self.layer_caches[head.layer].read(view_ids, window, head) for head in heads}
-            batch_terms = {k: v for k, v in terms.items() if not v[1].spatial}
+            layers[head.layer] = head(view_ids.to(self.device), window)
         ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window)
-        total, values = compute_losses(batch_terms, ctx)
-        # what the terms measured where the heads learn (the latent updates evaluate them again)
-        measured = term_metrics(terms)
+        terms = self.pipeline.loss_terms(name)
+        total, values = compute_losses(terms, ctx)
+        # what the terms measured on this batch (the latent updates below evaluate them again)
+        measured = {f"{key}.{mk}": mv for key, (_, term) in terms.items() for mk, mv in term.metrics.items()}
         if phase.rays:  # the loss: the pixel-weighted mean over the windows and the rays
             ray_total, ray_values = self._ray_losses(name, phase, heads, terms)
             share = phase.rays / (phase.rays + out.rgb[:, 0].numel())
             total = (1 - share) * total + share * ray_total
             values.update({f"rays.{k}": v for k, v in ray_values.items()})
-        latent_ctx = ctx  # where the latent updates act
         if phase.head_views:
-            cached_total, cached_values, cached_ctx = self._cached_view_losses(name, phase, heads, terms)
+            cached_total, cached_values = self._cached_view_losses(name, phase, heads, terms)
             total = total + cached_total
             values.update({f"cached_views.{k}": v for k, v in cached_values.items()})
-            if not phase.head_batch:
-                latent_ctx, measured = cached_ctx, term_metrics(terms)
         # the render with every layer laid over it (what the input should look like)
         fit = out.rgb.detach()
         for head in heads:
@@ -186,9 +174,8 @@ class Trainer:
             opt.step()
         for head in heads:
             if isinstance(head, LatentModel):
-                energy = self._energy(latent_ctx, head.layer, terms)
-                head.update_latents(latent_ctx.view_ids.to(self.device), latent_ctx.window, energy,
-                                    self.generator)
+                energy = self._energy(ctx, window, head.layer, terms)
+                head.update_latents(view_ids.to(self.device), window, energy, self.generator)
         for cb in self.callbacks:
             cb.after_step(state)
         self.step += 1
@@ -211,12 +198,10 @@ class Trainer:
         ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window)
         return compute_losses({k: v for k, v in terms.items() if not v[1].spatial}, ctx)
 
-    def _cached_view_losses(self, name: str, phase: PhaseConfig, heads: list, terms
-                            ) -> tuple[Tensor, dict, LossContext]:
+    def _cached_view_losses(self, name: str, phase: PhaseConfig, heads: list, terms) -> tuple[Tensor, dict]:
         """The phase's loss terms on ``phase.head_views`` whole training views, with the
         field's cached render of them (detached) as the background: only the heads learn.
-        Where the heads predict on these views only, what the terms record comes from here,
-        and the layer caches keep the predictions."""
+        The layer caches keep the predictions (for the phase's single rays)."""
         view_ids, window = sample_windows(self.train_pool, phase.head_views, 0, self.scene.width,
                                           self.scene.height, self.generator)
         views = view_ids.to(self.device)
@@ -226,14 +211,12 @@ class Trainer:
         for layer, cache in self.layer_caches.items():
             if layer in layers:
                 cache.write(views, layers[layer])
-        ctx = LossContext(cached.rgb, target, layers, cached, view_ids, self.step, name, window,
-                          record=not phase.head_batch)
-        return (*compute_losses(terms, ctx), ctx)
+        ctx = LossContext(cached.rgb, target, layers, cached, view_ids, self.step, name, window, record=False)
+        return compute_losses(terms, ctx)
 
-    def _energy(self, ctx: LossContext, layer: str, terms) -> Energy:
-        """The phase's loss on ``ctx`` as a function of one layer's prediction on a
-        sub-window, with the render (detached) and the other layers held at this step's values."""
-        window = ctx.window
+    def _energy(self, ctx: LossContext, window: Window, layer: str, terms) -> Energy:
+        """The phase's loss as a function of one layer's prediction on a sub-window, with the
+        render (detached) and the other layers held at this step's values."""
         base = replace(ctx, rendered=ctx.rendered.detach(), record=False)
 
         def energy(sub: Window, prediction: Tensor) -> Tensor:
