@@ -117,11 +117,19 @@ class Trainer:
 
     # ------------------------------------------------------------------- steps
 
-    def _batch(self, name: str, phase: PhaseConfig):
-        view_ids, window = sample_windows(self.train_pool, self.batch_sizes[name], phase.patch_size,
-                                          self.scene.width, self.scene.height, self.generator)
-        target = gather_pixels(self.images, view_ids.to(self.device), window)
-        return view_ids, window, target
+    def _sample(self, count: int, size: int) -> tuple[Tensor, Window, Tensor]:
+        """``count`` random training views, a random ``size`` window of each (0: whole views),
+        and the input's pixels there."""
+        view_ids, window = sample_windows(self.train_pool, count, size, self.scene.width,
+                                          self.scene.height, self.generator)
+        return view_ids, window, gather_pixels(self.images, view_ids.to(self.device), window)
+
+    def _render(self, view_ids: Tensor, window: Window) -> RenderOutput:
+        """The field's render of the windows, kept in the render cache where there is one."""
+        out = self.pipeline.field.render(self.cameras[view_ids], window)
+        if self.render_cache is not None:
+            self.render_cache.write(view_ids, window, out)
+        return out
 
     def train_step(self) -> dict:
         name, phase = self.phases.at(self.step)
@@ -129,11 +137,9 @@ class Trainer:
         self._set_lrs(phase)
         for cb in self.callbacks:
             cb.before_step(state)
-        view_ids, window, target = self._batch(name, phase)
+        view_ids, window, target = self._sample(self.batch_sizes[name], phase.patch_size)
         self.pipeline.field.train()
-        out = self.pipeline.field.render(self.cameras[view_ids], window)
-        if self.render_cache is not None:
-            self.render_cache.write(view_ids, window, out)
+        out = self._render(view_ids, window)
         heads = [self.pipeline.heads[key] for key in phase.heads]
         layers: dict[str, Tensor] = {}
         for head in heads:
@@ -188,12 +194,8 @@ class Trainer:
     def _ray_losses(self, name: str, phase: PhaseConfig, heads: list, terms) -> tuple[Tensor, dict]:
         """The per-pixel terms on ``phase.rays`` random single rays, each head's layer read
         from its cache of whole views (a constant): the field learns, the heads do not."""
-        view_ids, window = sample_windows(self.train_pool, phase.rays, 1, self.scene.width,
-                                          self.scene.height, self.generator)
-        target = gather_pixels(self.images, view_ids.to(self.device), window)
-        out = self.pipeline.field.render(self.cameras[view_ids], window)
-        if self.render_cache is not None:
-            self.render_cache.write(view_ids, window, out)
+        view_ids, window, target = self._sample(phase.rays, 1)
+        out = self._render(view_ids, window)
         layers = {head.layer: self.layer_caches[head.layer].read(view_ids, window, head) for head in heads}
         ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window)
         return compute_losses({k: v for k, v in terms.items() if not v[1].spatial}, ctx)
@@ -202,11 +204,9 @@ class Trainer:
         """The phase's loss terms on ``phase.head_views`` whole training views, with the
         field's cached render of them (detached) as the background: only the heads learn.
         The layer caches keep the predictions (for the phase's single rays)."""
-        view_ids, window = sample_windows(self.train_pool, phase.head_views, 0, self.scene.width,
-                                          self.scene.height, self.generator)
+        view_ids, window, target = self._sample(phase.head_views, 0)
         views = view_ids.to(self.device)
         cached = self.render_cache.read(views, window)
-        target = gather_pixels(self.images, views, window)
         layers = {head.layer: head(views, window) for head in heads}
         for layer, cache in self.layer_caches.items():
             if layer in layers:
