@@ -219,6 +219,19 @@ def test_points_box_bounds_the_grids_by_the_sparse_points(tiny_scene):
     assert not wants_sparse_points(config.method_config("nerf", ["field.layout=contract"]), forward_facing=True)
 
 
+def test_points_box_keeps_the_bulk_of_the_points_not_the_far_ones():
+    # a capture's SfM points: the object (a unit cube) and 8 % of stray points far off, as
+    # a handheld capture triangulates the room behind it from a few views
+    g = torch.Generator().manual_seed(0)
+    content = torch.rand(1000, 3, generator=g) * 2 - 1
+    far = torch.randn(80, 3, generator=g) * 10.0
+    lo, hi = points_box(torch.cat([content, far]))
+    assert (lo > -1.3).all() and (hi < 1.3).all()  # the object, not the room
+    assert (lo < -0.8).all() and (hi > 0.8).all()  # all of the object's bulk
+    lo1, hi1 = points_box(torch.cat([content, far]), quantile=0.01)  # the old rule: the room
+    assert ((hi1 - lo1) > 2 * (hi - lo)).any()
+
+
 def test_faces_forward_tells_camera_arrays_from_orbits(tiny_scene):
     assert faces_forward(forward_facing_scene().cameras.c2w)
     ring = []
