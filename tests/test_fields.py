@@ -220,7 +220,7 @@ def test_points_box_bounds_the_grids_by_the_sparse_points(tiny_scene):
 
 
 def test_points_box_keeps_the_bulk_of_the_points_not_the_far_ones():
-    # a capture's SfM points: the object (a unit cube) and 8 % of stray points far off, as
+    # a capture's SfM points: the object (the cube [-1, 1]^3) and 7 % of stray points far off, as
     # a handheld capture triangulates the room behind it from a few views
     g = torch.Generator().manual_seed(0)
     content = torch.rand(1000, 3, generator=g) * 2 - 1
