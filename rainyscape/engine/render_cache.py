@@ -20,6 +20,7 @@ from torch import Tensor
 
 from rainyscape.cameras import Window
 from rainyscape.components import RenderOutput
+from rainyscape.engine.sampling import window_values
 
 
 def box_sum(images: Tensor, size: int) -> Tensor:
@@ -83,10 +84,9 @@ class RenderCache:
     @torch.no_grad()
     def read(self, view_ids: Tensor, window: Window) -> RenderOutput:
         """The cached render of ``window`` of the views (B, C, h, w, float32), holes filled."""
-        xs, ys = window.pixel_grid(self.rgb.device)
-        v = view_ids.to(self.rgb.device)[:, None, None]
-        known = self.known[v, ys, xs].permute(0, 3, 1, 2)
-        both = torch.cat([self.rgb[v, ys, xs], self.depth[v, ys, xs]], -1).permute(0, 3, 1, 2).float()
+        known = window_values(self.known, view_ids, window)
+        both = torch.cat([window_values(self.rgb, view_ids, window),
+                          window_values(self.depth, view_ids, window)], 1).float()
         filled = fill_holes(both, known)
         return RenderOutput(rgb=filled[:, :3], depth=filled[:, 3:])
 
@@ -129,8 +129,7 @@ class LayerCache:
         if len(missing):
             zeros = torch.zeros(len(missing), dtype=torch.long)
             self.write(missing, predict(missing, Window(zeros, zeros.clone(), self.size[1], self.size[0])))
-        xs, ys = window.pixel_grid(self.values.device)
-        return self.values[views[:, None, None], ys, xs].permute(0, 3, 1, 2).float()
+        return window_values(self.values, views, window).float()
 
     def state_dict(self) -> dict:
         return {"values": self.values, "known": self.known}
