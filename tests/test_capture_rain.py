@@ -141,3 +141,21 @@ def test_rs_bench_real_set_plans_every_strength_of_every_capture(tmp_path):
     assert len(ceiling) == 3 and "dataparser=transforms-json" in ceiling[0].overrides
     assert {b.pixels_per_step for b in plan.budgets.values()} == {252 * 189}
     assert {b.steps for b in plan.budgets.values()} == {18 * 100}  # the 3DGS recipe: 100 a training view
+
+
+def test_a_capture_cache_follows_the_photos_content_not_their_times(tmp_path):
+    import os
+    import shutil
+
+    from rainyscape.comparison.captures import _source_stamp
+
+    photos = tmp_path / "a" / "images"
+    photos.mkdir(parents=True)
+    for i in range(3):
+        (photos / f"{i}.jpg").write_bytes(bytes([i]) * 100)
+    copy = tmp_path / "b"
+    shutil.copytree(tmp_path / "a", copy)  # a fresh copy: new times, same photos
+    os.utime(copy / "images" / "0.jpg", (1e9, 1e9))
+    assert _source_stamp(copy) == _source_stamp(tmp_path / "a")
+    (copy / "images" / "1.jpg").write_bytes(bytes([9]) * 100)  # same size, other content
+    assert _source_stamp(copy) != _source_stamp(tmp_path / "a")

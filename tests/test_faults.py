@@ -786,6 +786,42 @@ def test_case12_a_second_rs_bench_of_the_same_results_is_refused(toy_env, tiny_s
     assert sorted(p.name for p in out.iterdir()) == [".x.lock"]
 
 
+def test_a_stopped_rs_bench_stops_its_cells_and_starts_no_more(toy_env, tiny_scene_dir, tmp_path):
+    """SIGTERM to rs-bench alone (a scheduler's stop, `kill PID`): the running cell stops with a
+    checkpoint to resume from, and the queued cell does not start."""
+    second = tmp_path / "second"
+    shutil.copytree(tiny_scene_dir, second)
+    out = tmp_path / "results"
+    args = [sys.executable, "-m", "rainyscape.cli.bench", "methods=toy", f"scenes={tiny_scene_dir},{second}",
+            "iters=400", f"out={out}", "name=x", "device=cpu", "jobs=1", "field.delay=0.05",
+            "trainer.checkpoint_every=5", "trainer.eval_every=0", "phases.warmup.patches=2",
+            "phases.warmup.patch_size=8"]
+    proc = subprocess.Popen(args, env=toy_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def training() -> bool:
+        return any(s >= 3 for log in out.rglob("log.jsonl") for s in _logged_steps_safe(log.parent))
+
+    _wait_for(training, proc)
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(timeout=120)
+    assert proc.returncode == 130
+    cells = sorted((out / "runs" / "x").iterdir())
+    assert len(cells) == 1  # the queued cell never started
+    assert not any(str(cells[0]) in " ".join(_cmdline(pid)) for pid in _pids())  # nor runs on
+    assert RunFolder(_only_run(cells[0])).status()["state"] == "interrupted"
+
+
+def _pids() -> list[int]:
+    return [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()]
+
+
+def _cmdline(pid: int) -> list[str]:
+    try:
+        return (Path("/proc") / str(pid) / "cmdline").read_bytes().decode(errors="replace").split("\0")
+    except OSError:
+        return []
+
+
 def test_case20_two_evaluations_of_the_same_weights_give_the_same_metrics(reference_run, tmp_path, capsys):
     run = _run_copy(reference_run, tmp_path / "run")
     first = (run / "metrics.json").read_bytes()  # the end-of-run evaluation of the training process

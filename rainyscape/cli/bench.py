@@ -32,7 +32,7 @@ from __future__ import annotations
 import sys
 
 from rainyscape.comparison.options import BenchOptions
-from rainyscape.cli import run_cli
+from rainyscape.cli import run_cli, stop_on_sigterm
 from rainyscape.cli.args import Command, parse, print_help
 
 COMMAND = Command("rs-bench", __doc__, BenchOptions, overrides="dotted",
@@ -45,6 +45,7 @@ def main(argv: list[str]) -> int:
         return print_help(COMMAND)
     from rainyscape.comparison.run import run_bench
 
+    stop_on_sigterm()
     command = " ".join(["rs-bench", *argv])
     json_path, md_path, failed = run_bench(args.options, args.overrides, command)
     print(md_path.read_text())

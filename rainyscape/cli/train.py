@@ -26,7 +26,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 
-from rainyscape.cli import run_cli
+from rainyscape.cli import run_cli, stop_on_sigterm
 from rainyscape.cli.args import Command, opt, parse, print_help
 
 
@@ -79,7 +79,7 @@ def main(argv: list[str]) -> int:
         print("\ngpu recipe (profile=gpu): the cpu recipe with")
         print("\n".join(f"  {o}" for o in spec.gpu) or "  (no changes)")
         return 0
-    _stop_on_sigterm()
+    stop_on_sigterm()
     if args.options.resume:
         return _resume(args.options.resume, rest, args.options.force, method)
     if not method:
@@ -110,20 +110,6 @@ def _with_detected_format(cfg):
     print(f"dataparser={cfg.dataparser.name}: {cfg.data} is {resolved.dataparser.name}; its options "
           f"are shown and accepted (dataparser.KEY=value)\n")
     return resolved
-
-
-def _stop_on_sigterm() -> None:
-    """SIGTERM (kill, a batch scheduler's stop) ends training like Ctrl-C: a checkpoint is
-    saved and status.json says interrupted."""
-    import signal
-
-    def stop(signum, frame):
-        raise KeyboardInterrupt
-
-    try:
-        signal.signal(signal.SIGTERM, stop)
-    except ValueError:  # not the main thread (tests calling main in a worker)
-        pass
 
 
 # Trainer keys a resume cannot change: the folder is the run's, and its random state comes

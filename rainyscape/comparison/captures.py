@@ -87,9 +87,19 @@ def _digest(*parts) -> str:
 
 
 def _source_stamp(folder: Path) -> tuple:
-    """What a capture's cache depends on: its files' names, sizes and times."""
-    return tuple(sorted((str(p.relative_to(folder)), p.stat().st_size, int(p.stat().st_mtime))
+    """What a capture's cache depends on: its files' names and contents. Not their times: a
+    copy of the same photos (a fresh checkout, a re-synced data folder) must find the cache,
+    since posing again is slow and SfM need not register the same views twice."""
+    return tuple(sorted((str(p.relative_to(folder)), _file_digest(p))
                         for p in folder.rglob("*") if p.is_file()))
+
+
+def _file_digest(path: Path) -> str:
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def _build_once(final: Path, build) -> Path:

@@ -86,22 +86,44 @@ def run_cell_subprocess(cell: Cell, output_dir: Path, device: str, threads: int 
     result_path.unlink(missing_ok=True)
     env = dict(os.environ, OMP_NUM_THREADS=str(threads)) if threads > 0 else None
     with open(output_dir / "bench.log", "a") as log:
-        done = subprocess.run([sys.executable, "-m", "rainyscape.comparison.cell", str(spec_path), str(result_path)],
-                              stdout=log, stderr=subprocess.STDOUT, env=env)
-    if done.returncode == 0 and result_path.is_file():
+        child = subprocess.Popen([sys.executable, "-m", "rainyscape.comparison.cell", str(spec_path),
+                                  str(result_path)], stdout=log, stderr=subprocess.STDOUT, env=env)
+        _RUNNING.add(child)
+        try:
+            code = child.wait()
+        finally:
+            _RUNNING.discard(child)
+    if code == 0 and result_path.is_file():
         return json.loads(result_path.read_text())
     tail = (output_dir / "bench.log").read_text().strip().splitlines()[-5:]
-    return {"status": "failed", "error": " | ".join(tail) or f"exit code {done.returncode}"}
+    return {"status": "failed", "error": " | ".join(tail) or f"exit code {code}"}
+
+
+_RUNNING: set[subprocess.Popen] = set()  # the cells' processes now running
+
+
+def stop_running_cells() -> None:
+    """Ask every running cell to stop (SIGTERM: its run saves a checkpoint, so the next
+    rs-bench resumes it)."""
+    for child in list(_RUNNING):
+        if child.poll() is None:
+            child.terminate()
 
 
 def main(spec_path: str, result_path: str) -> int:
     """Subprocess entry: ``python -m rainyscape.comparison.cell CELL.json RESULT.json``."""
+    from rainyscape.cli import stop_on_sigterm
+
+    stop_on_sigterm()
     spec = json.loads(Path(spec_path).read_text())
     try:
         result = run_cell_here(spec)
     except RainyScapeError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("interrupted (rs-bench was stopped); rerun it to resume this cell", file=sys.stderr)
+        return 130
     Path(result_path).write_text(json.dumps(result, indent=2))
     return 0
 

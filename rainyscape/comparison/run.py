@@ -10,7 +10,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from pathlib import Path
 
-from rainyscape.comparison.cell import run_cell_subprocess
+from rainyscape.comparison.cell import run_cell_subprocess, stop_running_cells
 from rainyscape.comparison.matrix import Cell, cell_config
 from rainyscape.comparison.options import BenchOptions
 from rainyscape.comparison.oracle import cached_oracle, na_entry, scene_oracle, unavailable
@@ -121,28 +121,35 @@ def _run_locked(opts: BenchOptions, plan, target: BenchOutput, command: str) -> 
         return run_cell_subprocess(cell, folder, opts.device, threads)
 
     failed = 0
+
+    def record(n: int, cell: Cell, result: dict) -> None:
+        nonlocal failed
+        result.update({"fingerprint": prints[cell.key], "method": cell.method, "scene": cell.scene,
+                       "label": cell.label, "overrides": cell.overrides, "budget": budgets[cell.key].to_dict()})
+        results["cells"][cell.key] = result
+        results["updated"] = time.strftime("%Y-%m-%d %H:%M:%S")
+        save_results(json_path, results)
+        write_text_atomic(md_path, markdown_report(cells, results))
+        if result["status"] == "finished":
+            s = result["summary"]
+            print(f"[{n}/{len(cells)}] {cell.key}: PSNR {PSNR.text(render(PSNR).of(s))}, "
+                  f"SSIM {SSIM.format(render(SSIM).of(s))} ({result['how']}, {result['wall_s']:.0f} s)", flush=True)
+        else:
+            failed += 1
+            print(f"[{n}/{len(cells)}] {cell.key}: FAILED: {result['error']}", flush=True)
+
     # Cells run in their own processes; threads here only wait on them, and results are
     # recorded from this thread as each finishes, so the results file has one writer.
     with ThreadPoolExecutor(max_workers=opts.jobs) as pool:
         running = {pool.submit(run, n, cell): (n, cell) for n, cell in todo}
-        for future in as_completed(running):
-            n, cell = running[future]
-            result = future.result()
-            result.update({"fingerprint": prints[cell.key], "method": cell.method, "scene": cell.scene,
-                           "label": cell.label, "overrides": cell.overrides,
-                           "budget": budgets[cell.key].to_dict()})
-            results["cells"][cell.key] = result
-            results["updated"] = time.strftime("%Y-%m-%d %H:%M:%S")
-            save_results(json_path, results)
-            write_text_atomic(md_path, markdown_report(cells, results))
-            if result["status"] == "finished":
-                s = result["summary"]
-                print(f"[{n}/{len(cells)}] {cell.key}: PSNR {PSNR.text(render(PSNR).of(s))}, "
-                      f"SSIM {SSIM.format(render(SSIM).of(s))} ({result['how']}, {result['wall_s']:.0f} s)",
-                      flush=True)
-            else:
-                failed += 1
-                print(f"[{n}/{len(cells)}] {cell.key}: FAILED: {result['error']}", flush=True)
+        try:
+            for future in as_completed(running):
+                record(*running[future], future.result())
+        except BaseException:  # stopped (Ctrl-C, SIGTERM): start no more cells, stop those running
+            for future in running:
+                future.cancel()
+            stop_running_cells()
+            raise
     results["updated"] = time.strftime("%Y-%m-%d %H:%M:%S")
     save_results(json_path, results)
     write_text_atomic(md_path, markdown_report(cells, results))
