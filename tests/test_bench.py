@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -152,3 +153,35 @@ def test_bad_arguments_fail_before_any_training(tmp_path, tiny_scene_dir):
     assert not list(tmp_path.rglob("*.json"))
     typo = subprocess.run(["rs-bench", "method=nerf"], capture_output=True, text=True)
     assert typo.returncode == 2 and "Did you mean 'methods'" in typo.stderr
+
+
+def test_the_ceiling_of_rain_variants_trains_once(tmp_path, tiny_scene_dir):
+    """Two scenes with the same clean views and other rain (a capture's rain variants): the
+    plain field's ceiling trains on the first and the second evaluates a copy of that run on
+    its own scene, so its in-rain and dry columns split by its own rain."""
+    import shutil
+
+    from rainyscape.synth import generate
+
+    other_rain = generate(tmp_path / "seed1", "demo", rows=3, cols=4, width=48, height=48, mode="static",
+                          seed=1, size_scale=6.0, density=0.5)
+    variant = tmp_path / "variant"
+    shutil.copytree(tiny_scene_dir, variant)
+    for folder in ("rain", "images_rain"):
+        shutil.rmtree(variant / folder)
+        shutil.copytree(other_rain / folder, variant / folder)
+    out = tmp_path / "results"
+    args = ["rs-bench", "methods=nerf", f"scenes={tiny_scene_dir},{variant}", "iters=4", f"out={out}",
+            "name=v", "device=cpu", "jobs=2", "threads=1", "trainer.eval_every=0"]
+    done = subprocess.run(args, capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr
+    cells = json.loads((out / "v.json").read_text())["cells"]
+    first, second = cells[f"{tiny_scene_dir.name}/nerf on clean views"], cells["variant/nerf on clean views"]
+    assert first["how"] == "trained" and second["how"] == f"shared: {first['run_dir']}"
+    assert "evaluating the run of" in done.stdout
+    a, b = first["summary"], second["summary"]
+    assert abs(a["train_psnr"] - b["train_psnr"]) < 1e-6 and abs(a["heldout_psnr"] - b["heldout_psnr"]) < 1e-6
+    assert a["train_psnr_in_rain"] != b["train_psnr_in_rain"]  # scored against its own rain
+    run = Path(second["run_dir"])
+    assert run.is_relative_to(out / "runs" / "v") and f"data: {variant}" in (run / "config.yml").read_text()
+    assert cells["variant/nerf"]["how"] == "trained"  # the rainy cells train on their own rain

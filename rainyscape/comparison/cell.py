@@ -8,8 +8,10 @@ The parent writes ``cell.json`` (method, overrides, output folder) and runs
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -60,7 +62,9 @@ def run_cell_here(spec: dict) -> dict:
     cfg = method_config(spec["method"], spec["overrides"] + [f"trainer.output_dir={output_dir}"])
     existing = find_run(output_dir)
     started = time.perf_counter()
-    if existing is not None and existing.finished(cfg.trainer.max_iters):
+    if existing is None and spec.get("share_from"):
+        folder, resumed = share_run(Path(spec["share_from"]), output_dir, cfg), f"shared: {spec['share_from']}"
+    elif existing is not None and existing.finished(cfg.trainer.max_iters):
         folder, resumed = existing, "read back"
     else:
         resume = existing.path if existing is not None and existing.resumable(cfg.trainer.max_iters) else None
@@ -74,13 +78,39 @@ def run_cell_here(spec: dict) -> dict:
             "views": metrics.get("views", {}), **peak_memory_mib()}
 
 
-def run_cell_subprocess(cell: Cell, output_dir: Path, device: str, threads: int = 0) -> dict:
+def share_run(source: Path, output_dir: Path, cfg) -> RunFolder:
+    """A copy of the finished run ``source`` (another cell's, whose training was this cell's:
+    comparison/sharing.py) under ``output_dir``, naming this cell's scene and evaluated on it.
+    Built in a hidden folder and moved into place once evaluated."""
+    from rainyscape.engine.run import load_run
+    from rainyscape.eval.protocol import evaluate_pipeline, write_metrics
+    from rainyscape.workflow import complete_scene
+
+    rel = source.relative_to(source.parents[2])  # <scene>/<method>/<timestamp>
+    partial = output_dir / ".shared-partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    shutil.copytree(source, partial / rel, ignore=shutil.ignore_patterns(RunFolder.LOCK))
+    copy = RunFolder(partial / rel)
+    copy.save_config(dataclasses.replace(copy.config(), data=cfg.data))
+    pipeline, step = load_run(copy.path, cfg.trainer.device, prepare_scene=complete_scene)
+    print(f"the run of {source} trained this cell's ceiling; evaluating it on {cfg.data}", flush=True)
+    metrics = evaluate_pipeline(pipeline, copy.path)
+    metrics["step"] = step
+    write_metrics(copy.path, metrics)
+    (partial / rel.parts[0]).rename(output_dir / rel.parts[0])
+    partial.rmdir()
+    return RunFolder(output_dir / rel)
+
+
+def run_cell_subprocess(cell: Cell, output_dir: Path, device: str, threads: int = 0,
+                        share_from: str | None = None) -> dict:
     """Run a cell in a fresh interpreter (``threads`` > 0: that many torch / OpenMP
-    threads); its console output goes to ``bench.log``."""
+    threads); its console output goes to ``bench.log``. ``share_from``: a finished run whose
+    training is this cell's, copied and evaluated here instead of training."""
     output_dir.mkdir(parents=True, exist_ok=True)
     spec = {"method": cell.method, "overrides": [f"data={cell.data}", *cell.overrides,
                                                  f"trainer.device={device}", "trainer.progress=false"],
-            "output_dir": str(output_dir)}
+            "output_dir": str(output_dir), "share_from": share_from}
     spec_path, result_path = output_dir / "cell.json", output_dir / "result.json"
     spec_path.write_text(json.dumps(spec, indent=2))
     result_path.unlink(missing_ok=True)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, as_completed, wait
 from pathlib import Path
 
 from rainyscape.comparison.cell import run_cell_subprocess, stop_running_cells
@@ -18,6 +18,7 @@ from rainyscape.comparison.output import BenchOutput, check_name, check_output, 
 from rainyscape.comparison.plan import plan_bench
 from rainyscape.comparison.results import load_results, machine_description, save_results
 from rainyscape.comparison.scenes import cache_folder, resolve_scene
+from rainyscape.comparison.sharing import shared_runs
 from rainyscape.comparison.tables import markdown_report
 from rainyscape.engine.lock import RunLock
 from rainyscape.eval.metric_keys import PSNR, SSIM, render
@@ -115,10 +116,18 @@ def _run_locked(opts: BenchOptions, plan, target: BenchOutput, command: str) -> 
         else:
             todo.append((n, cell))
 
-    def run(n: int, cell: Cell) -> dict:
+    sources = shared_runs(cells)  # a ceiling -> the earlier ceiling that trains the same run
+
+    def finished_run(key: str) -> str | None:
+        done = results["cells"].get(key, {})
+        ok = done.get("status") == "finished" and done.get("fingerprint") == prints[key]
+        return done["run_dir"] if ok and Path(done.get("run_dir", "")).is_dir() else None
+
+    def run(n: int, cell: Cell, share_from: str | None = None) -> dict:
         folder = target.runs / f"{cell.folder_name}-{prints[cell.key]}"
-        print(f"[{n}/{len(cells)}] {cell.key}: running (log: {folder / 'bench.log'})", flush=True)
-        return run_cell_subprocess(cell, folder, opts.device, threads)
+        doing = f"evaluating the run of {sources[cell.key]} (the same training)" if share_from else "running"
+        print(f"[{n}/{len(cells)}] {cell.key}: {doing} (log: {folder / 'bench.log'})", flush=True)
+        return run_cell_subprocess(cell, folder, opts.device, threads, share_from)
 
     failed = 0
 
@@ -141,10 +150,24 @@ def _run_locked(opts: BenchOptions, plan, target: BenchOutput, command: str) -> 
     # Cells run in their own processes; threads here only wait on them, and results are
     # recorded from this thread as each finishes, so the results file has one writer.
     with ThreadPoolExecutor(max_workers=opts.jobs) as pool:
-        running = {pool.submit(run, n, cell): (n, cell) for n, cell in todo}
+        running, waiting = {}, {}  # future -> (n, cell); a source's key -> the cells sharing its run
+        for n, cell in todo:
+            source = sources.get(cell.key)
+            if source is not None and finished_run(source) is None:
+                waiting.setdefault(source, []).append((n, cell))
+            else:
+                running[pool.submit(run, n, cell, source and finished_run(source))] = (n, cell)
         try:
-            for future in as_completed(running):
-                record(*running[future], future.result())
+            pending = set(running)
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in done:
+                    n, cell = running[future]
+                    record(n, cell, future.result())
+                    for m, sharer in waiting.pop(cell.key, []):  # a failed source: they train
+                        started = pool.submit(run, m, sharer, finished_run(cell.key))
+                        running[started] = (m, sharer)
+                        pending.add(started)
         except BaseException:  # stopped (Ctrl-C, SIGTERM): start no more cells, stop those running
             for future in running:
                 future.cancel()
