@@ -196,3 +196,41 @@ def test_anchor_scale_drops_the_anchor_where_rain_is_predicted():
     left = _rain_split(anchor_scale=0.05)[..., :2]
     assert (left > 0).all()  # a positive gradient: descent lowers B towards I - R
     assert _rain_split()[..., :2].abs().max() < 1e-6  # the dead band: the two L1 terms cancel
+
+
+def test_floater_gate_takes_what_is_in_front_of_the_surface_under_rain():
+    from rainyscape.losses.free_space import front_floater_gate, sample_at
+
+    rain = torch.zeros(1, 3, 8, 8)
+    rain[0, :, 5, 2] = 0.2  # a streak pixel at column 2, row 5
+    depth = torch.full((1, 1, 8, 8), 10.0)
+    # four Gaussians: in front of the surface under the rain; on the surface under the rain;
+    # in front at a dry pixel; in front under the rain but not visible
+    means2d = torch.tensor([[[2.5, 5.5], [2.4, 5.6], [6.5, 1.5], [2.5, 5.5]]])
+    depths = torch.tensor([[3.0, 9.95, 3.0, 3.0]])
+    visible = torch.tensor([[True, True, True, False]])
+    assert sample_at(rain[:, :1], means2d)[0, :, 0].tolist() == pytest.approx([0.2, 0.2, 0.0, 0.2])
+    gate = front_floater_gate(rain, depth, means2d, depths, visible, margin=0.1, rain_scale=0.05)
+    assert gate.tolist() == [[1.0, 0.0, 0.0, 0.0]]
+    faint = front_floater_gate(rain * 0.1, depth, means2d, depths, visible, margin=0.1, rain_scale=0.05)
+    assert faint[0, 0].item() == pytest.approx(0.4)  # rain below the scale gates in proportion
+
+
+def test_floater_opacity_lowers_only_the_gated_gaussians_opacity():
+    from rainyscape.losses.free_space import FloaterOpacity
+
+    opacities = torch.full((3,), 0.5, requires_grad=True)
+    rain = torch.zeros(1, 3, 8, 8)
+    rain[0, :, 5, 2] = 0.2
+    output = RenderOutput(rgb=torch.zeros(1, 3, 8, 8), depth=torch.full((1, 1, 8, 8), 10.0),
+                          acc=torch.ones(1, 1, 8, 8),
+                          extras={"opacities": opacities, "means2d": torch.tensor([[[2.5, 5.5], [2.5, 5.5], [6.5, 1.5]]]),
+                                  "depths": torch.tensor([[3.0, 10.0, 3.0]]), "radii": torch.ones(1, 3, 2)})
+    ctx = LossContext(output.rgb, output.rgb, {"rain": rain}, output, torch.tensor([0]), 0, "joint")
+    loss = FloaterOpacity()(ctx)
+    loss.backward()
+    assert loss.item() == pytest.approx(0.5 / 64)
+    assert opacities.grad.tolist() == pytest.approx([1 / 64, 0.0, 0.0])  # descent lowers the floater's alone
+    # a render without Gaussians (a ray field, a crop of a render) gives nothing
+    plain = LossContext(output.rgb, output.rgb, {"rain": rain}, RenderOutput(rgb=output.rgb), torch.tensor([0]), 0, "joint")
+    assert FloaterOpacity()(plain).item() == 0.0

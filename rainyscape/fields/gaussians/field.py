@@ -312,8 +312,9 @@ class GaussianField(Field):
         degree = min(int(self.active_sh_degree), self.config.sh_degree)
         # Only the active degree's coefficients; the rasteriser evaluates them in view only.
         coeffs = torch.cat([p["sh0"], p["shN"][:, :num_sh_bases(degree) - 1]], 1)
-        out = rasterize(p["means"], p["quats"], p["scales"].exp(), torch.sigmoid(p["opacities"]),
-                        coeffs, cameras.w2c(), cameras.K(), self.width, self.height, window,
+        viewmats, opacities = cameras.w2c(), torch.sigmoid(p["opacities"])
+        out = rasterize(p["means"], p["quats"], p["scales"].exp(), opacities,
+                        coeffs, viewmats, cameras.K(), self.width, self.height, window,
                         sh_degree=degree, backgrounds=self.background,
                         near_plane=self.config.near_plane, eps2d=self.config.eps2d,
                         backend=self.config.backend)
@@ -324,7 +325,11 @@ class GaussianField(Field):
             acc=out.alpha.permute(0, 3, 1, 2),
             extras={"means2d": out.means2d, "radii": out.radii,
                     "image_size": (self.width, self.height),
-                    "window_size": (window.width, window.height)})
+                    "window_size": (window.width, window.height),
+                    # per Gaussian, for terms on the Gaussians themselves (losses/free_space.py):
+                    # its opacity (with gradient) and its centre's z in each camera (C, N)
+                    "opacities": opacities,
+                    "depths": (p["means"].detach() @ viewmats[:, 2, :3].T).T + viewmats[:, 2, 3:]})
 
     # ------------------------------------------------------------ persistence
 

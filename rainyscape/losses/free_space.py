@@ -1,0 +1,73 @@
+"""A free-space prior against rain held as scene (beyond the paper; issue 28).
+
+Rain fixed in 3D (a camera array's) is seen consistently by neighbouring views, so Gaussians
+fit it as geometry: small, semi-transparent floaters in front of the surface. Where the rain
+head sees rain, ``floater-opacity`` lowers the opacity of the Gaussians whose centre projects
+there and lies clearly in front of the rendered surface. The rain decides *where*; the
+depth test spares the surface behind the rain, which projects to the same pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from rainyscape.components import Loss, LossContext
+from rainyscape.config.schema import bounded
+
+
+def sample_at(image: Tensor, points: Tensor) -> Tensor:
+    """``image`` (C, K, h, w) at window pixel positions ``points`` (C, N, 2), nearest pixel:
+    (C, N, K); outside the window 0."""
+    h, w = image.shape[-2:]
+    grid = torch.stack([points[..., 0] / w * 2 - 1, points[..., 1] / h * 2 - 1], -1)
+    out = F.grid_sample(image, grid[:, :, None], mode="nearest", padding_mode="zeros", align_corners=False)
+    return out[..., 0].transpose(1, 2)
+
+
+def front_floater_gate(rain: Tensor, depth: Tensor, means2d: Tensor, depths: Tensor, visible: Tensor,
+                       margin: float, rain_scale: float) -> Tensor:
+    """Per camera and Gaussian (C, N), in [0, 1]: how much rain its centre's pixel shows
+    (the rain's channel mean over ``rain_scale``, clipped), where the Gaussian is visible and
+    nearer than ``1 - margin`` times the rendered depth there; 0 elsewhere.
+
+    rain (C, 3, h, w), depth (C, 1, h, w) rendered (0: nothing hit), means2d (C, N, 2) window
+    pixels, depths (C, N) the centres' z in each camera, visible (C, N) bool."""
+    rain_at = sample_at(rain.mean(1, keepdim=True), means2d)[..., 0]
+    surface = sample_at(depth, means2d)[..., 0]
+    front = visible & (surface > 0) & (depths > 0) & (depths < (1.0 - margin) * surface)
+    return (rain_at / rain_scale).clamp(0.0, 1.0) * front
+
+
+class FloaterOpacity(Loss):
+    """Opacity of the Gaussians in front of the surface where the rain head sees rain, summed
+    and divided by the batch's pixel count (a pixel's photometric gradient has that scale)."""
+
+    description = "free-space prior: opacity of Gaussians in front of the rendered surface where the rain head sees rain"
+    phases = ("joint",)
+    needs = ("rain",)
+    spatial = True
+
+    @dataclass
+    class Config:
+        margin: float = bounded(0.1, 0.0, 1.0)  # in front: nearer than (1 - margin) x the rendered depth
+        rain_scale: float = bounded(0.05, 1e-6)  # rain of this brightness (channel mean) or more gates fully
+
+    def __init__(self, config: "FloaterOpacity.Config | None" = None):
+        super().__init__(config or self.Config())
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        out = ctx.output
+        extras = {} if out is None else out.extras
+        if "opacities" not in extras or out.depth is None:  # not a Gaussian render (or a crop of one)
+            return ctx.rendered.new_zeros(())
+        c = self.config
+        gate = front_floater_gate(ctx.layers["rain"].detach(), out.depth.detach(), extras["means2d"].detach(),
+                                  extras["depths"], (extras["radii"] > 0).all(-1), c.margin, c.rain_scale)
+        if ctx.record:
+            self.metrics = {"gated_share": float((gate > 0).float().mean())}
+        pixels = ctx.rendered.shape[0] * ctx.rendered.shape[-2] * ctx.rendered.shape[-1]
+        return (gate * extras["opacities"][None]).sum() / pixels
