@@ -454,16 +454,33 @@ def test_rainyscape_3dgs_trains_whole_views_and_updates_latents_on_a_crop(tiny_s
     assert streak and abs(streak[0] - float((last_update[0, 0] + 90) % 180)) < 1e-3
 
 
-def test_rainyscape_plus_is_rainyscape_3dgs_with_multiview_rain_and_capped_tv():
+def test_rainyscape_plus_is_rainyscape_3dgs_with_multiview_rain_capped_tv_and_the_floater_prior():
     plus, paper = method_config("rainyscape-plus", []), method_config("rainyscape-3dgs", [])
-    assert set(plus.losses) - set(paper.losses) == {"multiview-rain"}
+    assert set(plus.losses) - set(paper.losses) == {"multiview-rain", "floater-opacity"}
     assert plus.losses["multiview-rain"].name == "mv-rain"
+    assert plus.losses["floater-opacity"].weight == 5.0 and plus.losses["floater-opacity"].phases == ("joint",)
     assert plus.losses["tv"].options.cap == 0.1 and paper.losses["tv"].options.cap == 0.0
     for key in paper.losses:
         if key != "tv":
             assert plus.losses[key] == paper.losses[key], key
     assert (plus.field, plus.rain_head, plus.phases, plus.trainer) == \
         (paper.field, paper.rain_head, paper.phases, paper.trainer)
+
+
+def test_rainyscape_plus_trains_with_its_floater_prior_acting(tiny_scene, tmp_path):
+    """End to end on the tiny scene: in every joint step the free-space prior is a term of
+    the loss, and it finds Gaussians in front of the surface where the head sees rain (what
+    it does to their opacity: tests/test_losses_rain.py)."""
+    from rainyscape.engine.trainer import Trainer
+
+    _, pipe = _quiet_pipeline("rainyscape-plus", tiny_scene, ["trainer.max_iters=12", "phases.warmup.end=0.25",
+                                                             "rain_head.latent_patch_size=16", "field.init_points=500",
+                                                             "trainer.log_every=1"])
+    Trainer(pipe, tmp_path).train()
+    joint = [r for r in map(json.loads, (tmp_path / "log.jsonl").read_text().splitlines()) if r.get("phase") == "joint"]
+    assert len(joint) == 9 and all("floater-opacity" in r["terms"] for r in joint)
+    shares = [r["metrics"]["floater-opacity.gated_share"] for r in joint]
+    assert max(shares) > 0 and all(0 <= s <= 1 for s in shares)
 
 
 def test_depth_guided_fill_lands_on_the_surfaces_the_sparse_points_sample(tiny_scene):
