@@ -32,20 +32,6 @@ def _oom_hint(main: Callable) -> str:
     return getattr(command, "oom_hint", "") or OOM_HINT
 
 
-def stop_on_sigterm() -> None:
-    """SIGTERM (kill, a batch scheduler's stop) ends a command like Ctrl-C: training saves a
-    checkpoint and says interrupted; rs-bench stops its cells."""
-    import signal
-
-    def stop(signum, frame):
-        raise KeyboardInterrupt
-
-    try:
-        signal.signal(signal.SIGTERM, stop)
-    except ValueError:  # not the main thread (tests calling main in a worker)
-        pass
-
-
 def run_cli(main: Callable[[list[str]], int], argv: list[str] | None = None) -> int:
     """Run a CLI body; user errors become one clear line on stderr and exit code 2.
 

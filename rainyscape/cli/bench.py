@@ -32,7 +32,7 @@ from __future__ import annotations
 import sys
 
 from rainyscape.comparison.options import BenchOptions
-from rainyscape.cli import run_cli, stop_on_sigterm
+from rainyscape.cli import run_cli
 from rainyscape.cli.args import Command, parse, print_help
 
 COMMAND = Command("rs-bench", __doc__, BenchOptions, overrides="dotted",
@@ -44,6 +44,7 @@ def main(argv: list[str]) -> int:
     if args.help:
         return print_help(COMMAND)
     from rainyscape.comparison.run import run_bench
+    from rainyscape.engine.signals import stop_on_sigterm
 
     stop_on_sigterm()
     command = " ".join(["rs-bench", *argv])

@@ -26,7 +26,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 
-from rainyscape.cli import run_cli, stop_on_sigterm
+from rainyscape.cli import run_cli
 from rainyscape.cli.args import Command, opt, parse, print_help
 
 
@@ -79,6 +79,8 @@ def main(argv: list[str]) -> int:
         print("\ngpu recipe (profile=gpu): the cpu recipe with")
         print("\n".join(f"  {o}" for o in spec.gpu) or "  (no changes)")
         return 0
+    from rainyscape.engine.signals import stop_on_sigterm
+
     stop_on_sigterm()
     if args.options.resume:
         return _resume(args.options.resume, rest, args.options.force, method)

@@ -142,7 +142,7 @@ def stop_running_cells() -> None:
 
 def main(spec_path: str, result_path: str) -> int:
     """Subprocess entry: ``python -m rainyscape.comparison.cell CELL.json RESULT.json``."""
-    from rainyscape.cli import stop_on_sigterm
+    from rainyscape.engine.signals import stop_on_sigterm
 
     stop_on_sigterm()
     spec = json.loads(Path(spec_path).read_text())
