@@ -225,7 +225,7 @@ def test_floater_opacity_lowers_only_the_gated_gaussians_opacity():
     output = RenderOutput(rgb=torch.zeros(1, 3, 8, 8), depth=torch.full((1, 1, 8, 8), 10.0),
                           acc=torch.ones(1, 1, 8, 8),
                           extras={"opacities": opacities, "means2d": torch.tensor([[[2.5, 5.5], [2.5, 5.5], [6.5, 1.5]]]),
-                                  "depths": torch.tensor([[3.0, 10.0, 3.0]]), "radii": torch.ones(1, 3, 2)})
+                                  "centre_depths": torch.tensor([[3.0, 10.0, 3.0]]), "radii": torch.ones(1, 3, 2)})
     ctx = LossContext(output.rgb, output.rgb, {"rain": rain}, output, torch.tensor([0]), 0, "joint")
     loss = FloaterOpacity()(ctx)
     loss.backward()

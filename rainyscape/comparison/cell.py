@@ -102,6 +102,17 @@ def share_run(source: Path, output_dir: Path, cfg) -> RunFolder:
     return RunFolder(output_dir / rel)
 
 
+_RUNNING: set[subprocess.Popen] = set()  # the cells' processes now running
+
+
+def stop_running_cells() -> None:
+    """Ask every running cell to stop (SIGTERM: its run saves a checkpoint, so the next
+    rs-bench resumes it)."""
+    for child in list(_RUNNING):
+        if child.poll() is None:
+            child.terminate()
+
+
 def run_cell_subprocess(cell: Cell, output_dir: Path, device: str, threads: int = 0,
                         share_from: str | None = None) -> dict:
     """Run a cell in a fresh interpreter (``threads`` > 0: that many torch / OpenMP
@@ -127,17 +138,6 @@ def run_cell_subprocess(cell: Cell, output_dir: Path, device: str, threads: int 
         return json.loads(result_path.read_text())
     tail = (output_dir / "bench.log").read_text().strip().splitlines()[-5:]
     return {"status": "failed", "error": " | ".join(tail) or f"exit code {code}"}
-
-
-_RUNNING: set[subprocess.Popen] = set()  # the cells' processes now running
-
-
-def stop_running_cells() -> None:
-    """Ask every running cell to stop (SIGTERM: its run saves a checkpoint, so the next
-    rs-bench resumes it)."""
-    for child in list(_RUNNING):
-        if child.poll() is None:
-            child.terminate()
 
 
 def main(spec_path: str, result_path: str) -> int:

@@ -153,10 +153,11 @@ def _run_locked(opts: BenchOptions, plan, target: BenchOutput, command: str) -> 
         running, waiting = {}, {}  # future -> (n, cell); a source's key -> the cells sharing its run
         for n, cell in todo:
             source = sources.get(cell.key)
-            if source is not None and finished_run(source) is None:
+            shared = finished_run(source) if source else None
+            if source and shared is None:
                 waiting.setdefault(source, []).append((n, cell))
             else:
-                running[pool.submit(run, n, cell, source and finished_run(source))] = (n, cell)
+                running[pool.submit(run, n, cell, shared)] = (n, cell)
         try:
             pending = set(running)
             while pending:

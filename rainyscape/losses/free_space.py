@@ -28,17 +28,19 @@ def sample_at(image: Tensor, points: Tensor) -> Tensor:
     return out[..., 0].transpose(1, 2)
 
 
-def front_floater_gate(rain: Tensor, depth: Tensor, means2d: Tensor, depths: Tensor, visible: Tensor,
+def front_floater_gate(rain: Tensor, depth: Tensor, means2d: Tensor, centre_depths: Tensor, visible: Tensor,
                        margin: float, rain_scale: float) -> Tensor:
     """Per camera and Gaussian (C, N), in [0, 1]: how much rain its centre's pixel shows
     (the rain's channel mean over ``rain_scale``, clipped), where the Gaussian is visible and
     nearer than ``1 - margin`` times the rendered depth there; 0 elsewhere.
 
     rain (C, 3, h, w), depth (C, 1, h, w) rendered (0: nothing hit), means2d (C, N, 2) window
-    pixels, depths (C, N) the centres' z in each camera, visible (C, N) bool."""
+    pixels, centre_depths (C, N) the Gaussians' centres' z in each camera (the model's, not
+    the scene's depth), visible (C, N) bool. Nothing here is ground truth: the rain is the
+    head's prediction and the depth the field's render."""
     rain_at = sample_at(rain.mean(1, keepdim=True), means2d)[..., 0]
     surface = sample_at(depth, means2d)[..., 0]
-    front = visible & (surface > 0) & (depths > 0) & (depths < (1.0 - margin) * surface)
+    front = visible & (surface > 0) & (centre_depths > 0) & (centre_depths < (1.0 - margin) * surface)
     return (rain_at / rain_scale).clamp(0.0, 1.0) * front
 
 
@@ -66,7 +68,7 @@ class FloaterOpacity(Loss):
             return ctx.rendered.new_zeros(())
         c = self.config
         gate = front_floater_gate(ctx.layers["rain"].detach(), out.depth.detach(), extras["means2d"].detach(),
-                                  extras["depths"], (extras["radii"] > 0).all(-1), c.margin, c.rain_scale)
+                                  extras["centre_depths"], (extras["radii"] > 0).all(-1), c.margin, c.rain_scale)
         if ctx.record:
             self.metrics = {"gated_share": float((gate > 0).float().mean())}
         pixels = ctx.rendered.shape[0] * ctx.rendered.shape[-2] * ctx.rendered.shape[-1]

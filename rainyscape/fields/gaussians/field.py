@@ -329,7 +329,7 @@ class GaussianField(Field):
                     # per Gaussian, for terms on the Gaussians themselves (losses/free_space.py):
                     # its opacity (with gradient) and its centre's z in each camera (C, N)
                     "opacities": opacities,
-                    "depths": (p["means"].detach() @ viewmats[:, 2, :3].T).T + viewmats[:, 2, 3:]})
+                    "centre_depths": (p["means"].detach() @ viewmats[:, 2, :3].T).T + viewmats[:, 2, 3:]})
 
     # ------------------------------------------------------------ persistence
 
