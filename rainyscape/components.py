@@ -136,6 +136,11 @@ class ImageHead(nn.Module):
         """Hooks the trainer calls for this head (e.g. changing its parameter set)."""
         return []
 
+    def stats(self) -> dict[str, float]:
+        """Numbers describing the head's current state (as :meth:`Field.stats`), logged as
+        ``stats.KEY.NAME`` with KEY the head's config key (e.g. ``rain_head``)."""
+        return {}
+
 
 Energy = Callable[[Window, Tensor], Tensor]
 

@@ -119,3 +119,39 @@ def test_densification_culls_transparent_and_clones_high_gradient_distractors(ti
     fresh = DistractorGaussians(cfg, tiny_scene)
     fresh.load_state_dict(head.state_dict())
     assert fresh.counts() == head.counts()
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpp"])
+def test_absgrad_grows_a_distractor_whose_pixels_pull_it_opposite_ways(tiny_scene, backend):
+    """DeSplat densifies with splatfacto's absolute 2D gradient (``absgrad``): a Gaussian
+    inside the image under a loss on its total colour gets pulled equally both ways, so its
+    net gradient (3DGS's statistic) is about zero while its absolute gradient is not."""
+    from rainyscape.cameras import pixel_rays
+    from rainyscape.fields.gaussians.rasterize_cpp import cpp_available
+
+    if backend == "cpp" and not cpp_available():
+        pytest.skip("the compiled rasteriser is not built")
+    stats = {}
+    for absgrad in (False, True):
+        cfg = DistractorGaussians.Config(gaussians_per_view=1, reference_pixels=0, backend=backend,
+                                          absgrad=absgrad, refine_every_views=1, refine_stop=1.0,
+                                          grow_grad2d=1e-4, cull_opacity=0.0, split_screen=1.0)
+        head = DistractorGaussians(cfg, tiny_scene)
+        view = head.views[0]
+        params = head.params_of(view)
+        rays = pixel_rays(tiny_scene.cameras[[view]], torch.tensor([[23.5]]), torch.tensor([[23.5]]))
+        with torch.no_grad():  # on the central ray, 3 px wide, half opaque
+            params["means"][:] = (rays.origins + rays.directions * 0.5)[0].float()
+            params["scales"][:] = torch.log(0.5 * 3 / tiny_scene.cameras.K()[view, 0, 0]).item()
+            params["opacities"][:] = 0.0
+        optimizers = {g.name: torch.optim.Adam(g.params, lr=g.lr) for g in head.param_groups()}
+        head.train()
+        layer = head(*_full(tiny_scene, view))
+        layer[:, :3].sum().backward()  # the total colour: the same wherever it is inside the image
+        cb = head.callbacks()[0]
+        state = TrainState(len(head.views) - 1, 1000, "fit", optimizers, torch.device("cpu"))
+        cb.after_backward(state, RenderOutput(layer))
+        stats[absgrad] = float(cb.grad2d[view][0])
+        cb.after_step(state)
+        assert cb.events["cloned"] == (1 if absgrad else 0)
+    assert stats[True] > 20 * stats[False]

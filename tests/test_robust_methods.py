@@ -87,6 +87,11 @@ def test_desplat_trains_its_distractors_and_evaluates_the_static_scene(tmp_path,
                           "rain_head.gaussians_per_view=100", "rain_head.reference_pixels=0",
                           "rain_head.refine_every_views=1")
     assert len(records) == 6 and 0.0 < records[-1]["metrics"]["desplat.distractor_alpha"] < 1.0
+    # the log carries the head's stats beside the field's: its Gaussians and their changes
+    stats = records[-1]["stats"]
+    views = stats["rain_head.num_gaussians"] / stats["rain_head.per_view"]
+    changes = stats["rain_head.cloned"] + stats["rain_head.split"] - stats["rain_head.culled"]
+    assert stats["rain_head.num_gaussians"] == 100 * views + changes and "field.num_gaussians" in stats
     summary = json.loads((run / "metrics.json").read_text())["summary"]
     assert summary["train_psnr"] > 5 and "train_rain_recovered" in summary  # the layer's share of the rain
     state = torch.load(latest_checkpoint(run / "checkpoints"), weights_only=True)

@@ -1,7 +1,8 @@
 """DeSplat's adaptive density control of the per-view distractor Gaussians.
 
-After each backward pass the mean 2D-gradient norm (the 3DGS statistic) and the largest
-screen radius of the rendered view's distractor Gaussians are accumulated. Every
+After each backward pass the norm of the 2D mean's absolute gradient (splatfacto's
+statistic, which DeSplat's code uses; with ``absgrad=false`` the 3DGS net gradient) and
+the largest screen radius of the rendered view's distractor Gaussians are accumulated. Every
 ``refine_every_views`` passes over the training views (DeSplat: 10, so each view has been
 seen about ten times), until ``refine_stop`` of the run, each view's set is refined:
 Gaussians larger on screen than ``split_screen`` x the image size are split in two (scales
@@ -43,7 +44,7 @@ class DistractorDensify(Callback):
             stats = RenderOutput(out.rgb, extras={"means2d": out.means2d, "radii": out.radii,
                                                   "image_size": (self.head.width, self.head.height),
                                                   "window_size": window_size})
-            found = mean_grad2d_statistic(stats)
+            found = mean_grad2d_statistic(stats, absgrad=self.head.config.absgrad)
             if found is None:
                 continue
             norms, visible = found

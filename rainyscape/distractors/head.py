@@ -86,7 +86,11 @@ class DistractorGaussians(ImageHead):
         # over the training views (each view seen about that many times) ...
         refine_every_views: int = bounded(10, 1)
         refine_stop: float = bounded(0.5, 0.0, 1.0)  # ... until this share of the run
-        grow_grad2d: float = bounded(2e-4, 0.0)  # clone above this mean 2D-gradient norm ...
+        # clone above this mean 2D-gradient norm: of the absolute gradient (AbsGS), as
+        # DeSplat's splatfacto, at its 0.0008 (absgrad=false: the net gradient, as 3DGS,
+        # whose threshold is 0.0002) ...
+        absgrad: bool = True
+        grow_grad2d: float = bounded(8e-4, 0.0)
         split_screen: float = bounded(0.05, 0.0)  # ... split above this radius / image size
         cull_opacity: float = bounded(0.1, 0.0, 1.0)  # remove below this opacity, and unseen ones
         max_per_view: int = bounded(0, 0)  # at most this many per view (0: no limit)
@@ -141,6 +145,12 @@ class DistractorGaussians(ImageHead):
         """Distractor Gaussians per training view."""
         return {v: int(self.sets[str(v)]["means"].shape[0]) for v in self.views}
 
+    def stats(self) -> dict[str, float]:
+        """Distractor Gaussians over all views and per view, and the density control's counts."""
+        counts = self.counts().values()
+        return {"num_gaussians": sum(counts), "per_view": sum(counts) / max(len(counts), 1),
+                **{k: float(v) for k, v in self.densify.events.items()}}
+
     def param_groups(self) -> list[ParamGroup]:
         c = self.config
         lrs = {"means": c.lr_means * self.extent, "scales": c.lr_scales, "quats": c.lr_quats,
@@ -171,7 +181,8 @@ class DistractorGaussians(ImageHead):
         return rasterize(p["means"], p["quats"], p["scales"].exp(), torch.sigmoid(p["opacities"]),
                          p["colors"].clamp(0.0, 1.0), self.viewmats[view:view + 1], self.Ks[view:view + 1],
                          self.width, self.height, win, near_plane=self.config.near_plane,
-                         eps2d=self.config.eps2d, backend=self.config.backend)
+                         eps2d=self.config.eps2d, backend=self.config.backend,
+                         absgrad=self.config.absgrad)
 
     def forward(self, view_ids: Tensor, window: Window) -> Tensor:
         layers = []

@@ -262,6 +262,11 @@ class Trainer:
 
     # -------------------------------------------------------------------- loop
 
+    def _stats(self) -> dict[str, float]:
+        """The field's and the heads' state numbers, keyed ``field.NAME`` and ``HEAD.NAME``."""
+        parts = {"field": self.pipeline.field, **self.pipeline.heads}
+        return {f"{key}.{k}": v for key, part in parts.items() for k, v in part.stats().items()}
+
     def _log(self, record: dict) -> None:
         self.folder.append_log(record)
 
@@ -302,7 +307,7 @@ class Trainer:
                 record = self.train_step()
                 record["time"] = round(time.time() - t0, 3)
                 if self.step % self.cfg.log_every == 0 or self.step == stop:
-                    record["stats"] = {f"field.{k}": v for k, v in self.pipeline.field.stats().items()}
+                    record["stats"] = self._stats()
                     self._log(record)
                 if (self.evaluate is not None and self.cfg.eval_every
                         and (self.step % self.cfg.eval_every == 0 or self.step == stop)):

@@ -95,19 +95,21 @@ class Strategy:
     def load_state_dict(self, state: dict) -> None: ...
 
 
-def mean_grad2d_statistic(output: RenderOutput) -> tuple[Tensor, Tensor] | None:
+def mean_grad2d_statistic(output: RenderOutput, absgrad: bool = False) -> tuple[Tensor, Tensor] | None:
     """The 3DGS densification statistic of one batch: per camera and Gaussian, the norm of
     the 2D mean's gradient in the NDC of one full image with a per-image mean loss (C, N),
-    and where each Gaussian was visible (C, N); None when the render carried no gradient."""
+    and where each Gaussian was visible (C, N); None when the render carried no gradient.
+    ``absgrad``: of its absolute gradient instead (AbsGS; rendered with ``absgrad=True``)."""
     means2d = output.extras.get("means2d")
-    if means2d is None or means2d.grad is None:
+    grad = None if means2d is None else getattr(means2d, "absgrad", None) if absgrad else means2d.grad
+    if grad is None or means2d.grad is None:
         return None
     (width, height), (w, h) = output.extras["image_size"], output.extras["window_size"]
     # Pixel gradients of a batch of C windows with a mean loss -> the 3DGS statistic.
     area = means2d.shape[0] * w * h / (width * height)
     scale = torch.tensor([width / 2 * area, height / 2 * area], device=means2d.device)
     visible = (output.extras["radii"] > 0).all(-1)
-    return (means2d.grad * scale).norm(dim=-1) * visible, visible
+    return (grad * scale).norm(dim=-1) * visible, visible
 
 
 class DefaultStrategy(Strategy):

@@ -26,7 +26,7 @@ from rainyscape.fields.gaussians.projection import candidate_gaussians, project_
 from rainyscape.fields.gaussians.rasterize_gsplat import gsplat_usable, rasterize_gsplat
 from rainyscape.fields.gaussians.rasterize_cpp import (composite_cpp, cpp_available,
                                                       project_cpp, unavailable_reason)
-from rainyscape.fields.gaussians.rasterize_torch import composite
+from rainyscape.fields.gaussians.rasterize_torch import AbsGrad, composite
 from rainyscape.fields.gaussians.sh import sh_to_rgb
 
 BACKENDS = ("auto", "torch", "cpp", "gsplat")
@@ -80,7 +80,8 @@ def colors_from_sh(coeffs: Tensor, means: Tensor, viewmats: Tensor, sh_degree: i
 def _project_torch(means, quats, scales, opacities, colors, args, sh_degree):
     """The torch path's projection and colours (C, N, 3), run on the Gaussians that may be
     in view only (a cheap superset, without gradients): a patch sees a few percent of them.
-    Returns the projection of that subset and the full-size 2D means and radii."""
+    Returns the projection of that subset, the full-size 2D means and radii, and the
+    subset's indices (None: all N)."""
     viewmats, Ks, width, height, x0, y0, win_w, win_h, near_plane, far_plane, eps2d = args
     c, n = viewmats.shape[0], means.shape[0]
     ids = candidate_gaussians(means.detach(), scales.detach(), opacities.detach(), viewmats,
@@ -106,7 +107,7 @@ def _project_torch(means, quats, scales, opacities, colors, args, sh_degree):
         means2d = means2d.new_zeros(c, n, 2).index_copy(1, ids, means2d)
         proj.means2d = means2d.index_select(1, ids)
         radii = radii.new_zeros(c, n, 2).index_copy_(1, ids, radii)
-    return proj, colors, means2d, radii
+    return proj, colors, means2d, radii, ids if culled else None
 
 
 def _project_cpp(means, quats, scales, opacities, colors, args, sh_degree):
@@ -132,7 +133,8 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
               viewmats: Tensor, Ks: Tensor, width: int, height: int,
               window: Window | None = None, *, sh_degree: int | None = None,
               backgrounds: Tensor | None = None, near_plane: float = 0.01,
-              far_plane: float = 1e10, eps2d: float = 0.3, backend: str = "auto") -> Rasterized:
+              far_plane: float = 1e10, eps2d: float = 0.3, backend: str = "auto",
+              absgrad: bool = False) -> Rasterized:
     """Render C cameras (or a window of each) of N Gaussians.
 
     means (N, 3), quats (N, 4) w x y z, scales (N, 3) linear, opacities (N,) in [0, 1],
@@ -140,7 +142,8 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
     (N, K, 3) evaluated along camera centre -> mean (as gsplat), viewmats (C, 4, 4)
     world-to-camera (OpenCV), Ks (C, 3, 3); width / height: the full image. ``window``:
     per-camera offsets and one size (default: the whole image); only its pixels are
-    computed.
+    computed. ``absgrad``: as gsplat's, after the backward pass ``means2d.absgrad`` (C, N, 2)
+    holds the 2D means' absolute gradient (AbsGS: per pixel |dL/d mean2d|, summed).
     """
     c, n = viewmats.shape[0], means.shape[0]
     if window is None:
@@ -153,7 +156,7 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
             colors = colors_from_sh(colors, means, viewmats, sh_degree)
         rgb, alpha, depth, means2d, radii = rasterize_gsplat(
             means, quats, scales, opacities, colors, viewmats, Ks, x0, y0, window.width,
-            window.height, near_plane, far_plane, eps2d)
+            window.height, near_plane, far_plane, eps2d, absgrad)
     else:
         # The compiled kernel takes float32 and gives no gradient to the cameras.
         use_cpp = (name == "cpp" and means.dtype == torch.float32
@@ -162,13 +165,18 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
                 far_plane, eps2d)
         if use_cpp:
             proj, colors = _project_cpp(means, quats, scales, opacities, colors, args, sh_degree)
-            means2d, radii = proj.means2d, proj.radii
+            means2d, radii, ids = proj.means2d, proj.radii, None
         else:
-            proj, colors, means2d, radii = _project_torch(means, quats, scales, opacities, colors,
-                                                          args, sh_degree)
+            proj, colors, means2d, radii, ids = _project_torch(means, quats, scales, opacities,
+                                                               colors, args, sh_degree)
+        sink = None
+        if absgrad:  # filled by the backward pass, as gsplat's means2d.absgrad
+            means2d.absgrad = means2d.new_zeros(c, n, 2)
+            rows = None if ids is None else (torch.arange(c, device=ids.device)[:, None] * n + ids).reshape(-1)
+            sink = AbsGrad(means2d.absgrad.view(c * n, 2), rows)
         features = torch.cat([colors, proj.depths[..., None]], -1)
-        out, alpha = (composite_cpp if use_cpp else composite)(proj, features, window.width,
-                                                               window.height)
+        out, alpha = (composite_cpp if use_cpp else composite)(
+            proj, features, window.width, window.height, absgrad=sink)
         rgb = out[..., :3]
         depth = out[..., 3:] / alpha.clamp_min(1e-10)
     if backgrounds is not None:

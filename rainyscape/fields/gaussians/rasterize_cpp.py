@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from rainyscape.fields.gaussians.projection import Projection
+from rainyscape.fields.gaussians.rasterize_torch import AbsGrad
 
 try:
     from rainyscape.fields.gaussians import _rasterize_cpp as _ext
@@ -128,14 +129,14 @@ def binning_pairs(proj: Projection, width: int, height: int) -> int:
 
 class _CompositeCpp(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, proj, width, height):
+    def forward(ctx, means2d, conics, opacities, features, proj, width, height, absgrad):
         threads = torch.get_num_threads()
         b, arrays = _bin(proj, width, height, threads)
         feats = _ready(features)
         c = proj.radii.shape[0]
         out = torch.empty(c, height, width, feats.shape[1] + 1)
         _ext.forward(b, feats.data_ptr(), feats.shape[1], out.data_ptr(), threads)
-        ctx.binning, ctx.arrays, ctx.features = b, arrays, feats
+        ctx.binning, ctx.arrays, ctx.features, ctx.absgrad = b, arrays, feats, absgrad
         return out
 
     @staticmethod
@@ -145,20 +146,26 @@ class _CompositeCpp(torch.autograd.Function):
         g_out = _ready(g_out)
         m = feats.shape[0]
         grads = [torch.zeros(m, 2), torch.zeros(m, 3), torch.zeros(m), torch.zeros_like(feats)]
+        absgrad = None if ctx.absgrad is None else torch.zeros(m, 2)
         _ext.backward(ctx.binning, opacities.data_ptr(), feats.shape[1], g_out.data_ptr(),
-                      *(g.data_ptr() for g in grads), torch.get_num_threads())
-        ctx.binning = ctx.arrays = ctx.features = None
-        return (*grads, None, None, None)
+                      *(g.data_ptr() for g in grads), 0 if absgrad is None else absgrad.data_ptr(),
+                      torch.get_num_threads())
+        if absgrad is not None:
+            ctx.absgrad.add(absgrad)
+        ctx.binning = ctx.arrays = ctx.features = ctx.absgrad = None
+        return (*grads, None, None, None, None)
 
 
-def composite_cpp(proj: Projection, features: Tensor, width: int,
-                  height: int) -> tuple[Tensor, Tensor]:
+def composite_cpp(proj: Projection, features: Tensor, width: int, height: int,
+                  absgrad: AbsGrad | None = None) -> tuple[Tensor, Tensor]:
     """As :func:`rasterize_torch.composite`: (C, height, width, D) features and
-    (C, height, width, 1) alpha of per-camera features (C, N, D); float32 CPU only."""
+    (C, height, width, 1) alpha of per-camera features (C, N, D), and the means' absolute
+    gradient into ``absgrad``; float32 CPU only."""
     if _ext is None:
         raise RuntimeError(unavailable_reason())
     c, n = proj.radii.shape[:2]
     out = _CompositeCpp.apply(proj.means2d.reshape(c * n, 2), proj.conics.reshape(c * n, 3),
                               proj.opacities.reshape(c * n),
-                              features.reshape(c * n, features.shape[-1]), proj, width, height)
+                              features.reshape(c * n, features.shape[-1]), proj, width, height,
+                              absgrad)
     return out[..., :-1], out[..., -1:]

@@ -125,9 +125,10 @@ def forget_gsplat_checks() -> None:
 def rasterize_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
                      colors: Tensor, viewmats: Tensor, Ks: Tensor, x0: Tensor, y0: Tensor,
                      win_w: int, win_h: int, near_plane: float, far_plane: float,
-                     eps2d: float) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+                     eps2d: float, absgrad: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """rgb (C, h, w, 3), alpha (C, h, w, 1), expected depth (C, h, w, 1), means2d
-    (C, N, 2) in window pixels and radii (C, N, 2), for gsplat 1.x."""
+    (C, N, 2) in window pixels (with ``absgrad``: gsplat sets its ``.absgrad`` in the
+    backward pass) and radii (C, N, 2), for gsplat 1.x."""
     from gsplat import rasterization
 
     c = viewmats.shape[0]
@@ -140,7 +141,7 @@ def rasterize_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Te
     render, alpha, meta = rasterization(
         means, quats, scales, opacities, colors, viewmats, ks, win_w, win_h,
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, packed=False,
-        render_mode="RGB+ED", rasterize_mode="classic", tile_size=16)
+        render_mode="RGB+ED", rasterize_mode="classic", tile_size=16, absgrad=absgrad)
     radii = meta["radii"]
     if radii.ndim == 2:  # gsplat < 1.5: one radius per Gaussian
         radii = radii[..., None].expand(-1, -1, 2)

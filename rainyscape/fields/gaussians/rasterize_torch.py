@@ -287,8 +287,30 @@ def _forward(means2d, conics, opacities, features, binning, width, height, cache
     return acc, cache
 
 
-def _backward(means2d, conics, opacities, features, binning, width, height, g_out, out, steps):
-    """Gradients of means2d, conics, opacities and features from those of the output."""
+@dataclass
+class AbsGrad:
+    """Where a backward pass adds the 2D means' absolute gradient (AbsGS; gsplat's
+    ``absgrad``): per Gaussian, the sum over pixels of the absolute value of each pixel's
+    contribution to dL/d mean2d, so that gradients of opposite sign do not cancel.
+    ``out`` (R, 2); ``rows`` (M,) maps the composited Gaussians to rows of ``out`` (None:
+    the same rows)."""
+
+    out: Tensor
+    rows: Tensor | None = None
+
+    def add(self, values: Tensor, ids: Tensor | None = None) -> None:
+        """Add ``values`` (M, 2) of the composited Gaussians ``ids`` (None: all, in order)."""
+        if ids is None and self.rows is None:
+            self.out.add_(values.to(self.out))
+            return
+        rows = ids if self.rows is None else self.rows if ids is None else self.rows[ids]
+        self.out.index_add_(0, rows, values.to(self.out))
+
+
+def _backward(means2d, conics, opacities, features, binning, width, height, g_out, out, steps,
+              absgrad: AbsGrad | None = None):
+    """Gradients of means2d, conics, opacities and features from those of the output (and
+    the means' absolute gradient into ``absgrad``)."""
     feats = torch.cat([features, torch.ones_like(features[:, :1])], 1)
     d1 = feats.shape[1]
     s = binning.tile_size
@@ -328,6 +350,11 @@ def _backward(means2d, conics, opacities, features, binning, width, height, g_ou
         ca, cb, cc = st.con.unbind(1)
         # d(-sigma)/d mean = -(a dx + b dy, b dx + c dy); d(-sigma)/d conic = -(dx^2/2, dx dy, dy^2/2)
         gm = -torch.stack([ca * sx + cb * sy, cb * sx + cc * sy], -1)
+        if absgrad is not None:  # per pixel before summing: (A, rows, columns, K)
+            dx, dy = st.dx[:, None], st.dy[:, :, None]
+            ax = (gs * (ca[:, None, None] * dx + cb[:, None, None] * dy)).abs().sum((1, 2))
+            ay = (gs * (cb[:, None, None] * dx + cc[:, None, None] * dy)).abs().sum((1, 2))
+            absgrad.add(torch.stack([ax, ay], -1).reshape(-1, 2), flat)
         gc = -torch.stack([0.5 * sxx, sxy, 0.5 * syy], -1)
         gf = torch.bmm(g[:, :-1], st.weight).transpose(1, 2)  # (A, K, D)
         grad_mean.index_add_(0, flat, gm.reshape(-1, 2))
@@ -339,11 +366,11 @@ def _backward(means2d, conics, opacities, features, binning, width, height, g_ou
 
 class _CompositeTiles(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, binning, width, height):
+    def forward(ctx, means2d, conics, opacities, features, binning, width, height, absgrad):
         grad = any(ctx.needs_input_grad[:4])
         out, cache = _forward(means2d, conics, opacities, features, binning, width, height,
                               [] if grad else None)
-        ctx.binning, ctx.size, ctx.cache = binning, (width, height), cache
+        ctx.binning, ctx.size, ctx.cache, ctx.absgrad = binning, (width, height), cache, absgrad
         ctx.save_for_backward(means2d, conics, opacities, features, out)
         return out
 
@@ -351,9 +378,9 @@ class _CompositeTiles(torch.autograd.Function):
     def backward(ctx, g_out):
         means2d, conics, opacities, features, out = ctx.saved_tensors
         grads = _backward(means2d, conics, opacities, features, ctx.binning, *ctx.size,
-                          g_out.contiguous(), out, ctx.cache)
-        ctx.cache = None
-        return (*grads, None, None, None)
+                          g_out.contiguous(), out, ctx.cache, ctx.absgrad)
+        ctx.cache = ctx.absgrad = None
+        return (*grads, None, None, None, None)
 
 
 def _untile(x: Tensor, c: int, binning: Binning, width: int, height: int) -> Tensor:
@@ -364,9 +391,11 @@ def _untile(x: Tensor, c: int, binning: Binning, width: int, height: int) -> Ten
 
 
 def composite(proj: Projection, features: Tensor, width: int, height: int,
-              tile_size: int = TILE_SIZE, subtile_size: int = SUBTILE_SIZE) -> tuple[Tensor, Tensor]:
+              tile_size: int = TILE_SIZE, subtile_size: int = SUBTILE_SIZE,
+              absgrad: AbsGrad | None = None) -> tuple[Tensor, Tensor]:
     """Alpha-composite projected Gaussians into (C, height, width, D) features and
-    (C, height, width, 1) alpha. ``features`` (C, N, D) are per-camera Gaussian values."""
+    (C, height, width, 1) alpha. ``features`` (C, N, D) are per-camera Gaussian values;
+    ``absgrad`` gets the 2D means' absolute gradient (rows: the C * N flattened Gaussians)."""
     c, n = proj.radii.shape[:2]
     binning = bin_gaussians(proj, width, height, tile_size)
     if len(binning.gaussian_ids) <= SPLIT_MAX_PAIRS * max(int(proj.visible.sum()), 1):
@@ -374,6 +403,6 @@ def composite(proj: Projection, features: Tensor, width: int, height: int,
     out = _CompositeTiles.apply(
         proj.means2d.reshape(c * n, 2), proj.conics.reshape(c * n, 3),
         proj.opacities.reshape(c * n), features.reshape(c * n, features.shape[-1]), binning,
-        width, height)
+        width, height, absgrad)
     out = _untile(out, c, binning, width, height)
     return out[..., :-1], out[..., -1:]

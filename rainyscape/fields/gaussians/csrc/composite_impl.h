@@ -41,6 +41,7 @@ inline IV load(const int32_t* p) {
 inline void store(float* p, FV v) { std::memcpy(p, &v, sizeof v); }
 inline void store(int32_t* p, IV v) { std::memcpy(p, &v, sizeof v); }
 inline FV splat(float x) { return FV{} + x; }
+inline FV abs_lanes(FV x) { return x < FV{} ? -x : x; }
 inline IV splat(int32_t x) { return IV{} + x; }
 // Sum of the lanes, halving the vector each step (shuffles instead of kLanes extracts).
 #if defined(__clang__)
@@ -257,12 +258,15 @@ void forward_channels(const float* features, int channels_in, Binning& b, float*
 template <int kD>
 void backward_channels(const float* opacities, int channels_in, const Binning& b,
                        const float* grad_out, float* grad_means2d, float* grad_conics,
-                       float* grad_opacities, float* grad_features, int threads) {
+                       float* grad_opacities, float* grad_features, float* absgrad_means2d,
+                       int threads) {
   const int channels = kD > 0 ? kD : channels_in;
   const int dp = channels + 1;
   const int64_t tiles = static_cast<int64_t>(b.tile_start.size()) - 1;
   const int64_t v = static_cast<int64_t>(b.rows.size());
-  const int64_t stride = 6 + channels;  // per Gaussian: means 2, conics 3, opacity 1, features
+  const bool want_abs = absgrad_means2d != nullptr;
+  // per Gaussian: means 2, conics 3, opacity 1, features, (the means' absolute gradient 2)
+  const int64_t stride = 6 + channels + (want_abs ? 2 : 0);
   // Each worker adds into its own array of (rank, stride) gradients (no atomics; one or two
   // cache lines per Gaussian), summed into the outputs by row at the end; fewer workers
   // when those would take more than 1 GiB. Tiles go to workers by a fixed rule, so the sums
@@ -317,6 +321,7 @@ void backward_channels(const float* opacities, int channels_in, const Binning& b
       if (!row_range(p, box.y0, box.h, r0, r1)) continue;
       const IV rank = splat(kk);
       FV l_mx{}, l_my{}, l_ca{}, l_cb{}, l_cc{}, l_op{};  // per-lane sums of the gradients
+      FV l_ax{}, l_ay{};  // per-lane sums of the means' per-pixel |gradient|
       FV l_f[kD > 0 ? kD : kMaxChannels];  // per-lane sums of the feature gradient
       for (int d = 0; d < channels; ++d) l_f[d] = FV{};
       bool touched = false;
@@ -354,8 +359,14 @@ void backward_channels(const float* opacities, int channels_in, const Binning& b
           // alpha = o exp(-sigma) where the clamp is not active: dL/d(-sigma) = dL/dalpha alpha
           const FV g_ns = in & (raw < kMaxAlpha) ? g_alpha * alpha : FV{};
           l_op += g_ns;  // divided by the opacity at the end
-          l_mx -= g_ns * (p.a * dx + p.b * dy);
-          l_my -= g_ns * (p.b * dx + p.c * dy);
+          const FV g_mx = g_ns * (p.a * dx + p.b * dy);
+          const FV g_my = g_ns * (p.b * dx + p.c * dy);
+          l_mx -= g_mx;
+          l_my -= g_my;
+          if (want_abs) {
+            l_ax += abs_lanes(g_mx);
+            l_ay += abs_lanes(g_my);
+          }
           l_ca -= 0.5f * g_ns * dx * dx;
           l_cb -= g_ns * dx * dy;
           l_cc -= 0.5f * g_ns * dy * dy;
@@ -371,6 +382,10 @@ void backward_channels(const float* opacities, int channels_in, const Binning& b
       gi[4] += lane_sum(l_cc);
       gi[5] += lane_sum(l_op);
       for (int d = 0; d < channels; ++d) gi[6 + d] += lane_sum(l_f[d]);
+      if (want_abs) {
+        gi[6 + channels] += lane_sum(l_ax);
+        gi[7 + channels] += lane_sum(l_ay);
+      }
     }
   }, /*fixed=*/true);
   const int64_t block = 4096;
@@ -384,6 +399,8 @@ void backward_channels(const float* opacities, int channels_in, const Binning& b
         for (int j = 0; j < 3; ++j) grad_conics[3 * row + j] += gi[2 + j];
         grad_opacities[row] += gi[5];
         for (int d = 0; d < channels; ++d) grad_features[row * channels + d] += gi[6 + d];
+        if (want_abs)
+          for (int j = 0; j < 2; ++j) absgrad_means2d[2 * row + j] += gi[6 + channels + j];
       }
       // dL/do = dL/d(-sigma) / o (alpha = o exp(-sigma))
       grad_opacities[row] /= std::max(opacities[row], 1e-30f);
@@ -402,17 +419,18 @@ void composite_forward(const float* features, int channels, Binning& b, float* o
 
 void composite_backward(const float* opacities, int channels, const Binning& b,
                         const float* grad_out, float* grad_means2d, float* grad_conics,
-                        float* grad_opacities, float* grad_features, int threads) {
+                        float* grad_opacities, float* grad_features, float* absgrad_means2d,
+                        int threads) {
   switch (channels) {
     case 3:
       return backward_channels<3>(opacities, channels, b, grad_out, grad_means2d, grad_conics,
-                                  grad_opacities, grad_features, threads);
+                                  grad_opacities, grad_features, absgrad_means2d, threads);
     case 4:
       return backward_channels<4>(opacities, channels, b, grad_out, grad_means2d, grad_conics,
-                                  grad_opacities, grad_features, threads);
+                                  grad_opacities, grad_features, absgrad_means2d, threads);
     default:
       return backward_channels<0>(opacities, channels, b, grad_out, grad_means2d, grad_conics,
-                                  grad_opacities, grad_features, threads);
+                                  grad_opacities, grad_features, absgrad_means2d, threads);
   }
 }
 

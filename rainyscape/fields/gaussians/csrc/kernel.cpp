@@ -233,14 +233,16 @@ void composite_forward(const float* features, int channels, Binning& b, float* o
 void composite_backward(const float* opacities, int channels,
                         const Binning& b, const float* grad_out, float* grad_means2d,
                         float* grad_conics, float* grad_opacities, float* grad_features,
-                        int threads) {
+                        float* absgrad_means2d, int threads) {
 #ifdef RS_HAVE_AVX2
   if (use_avx2())
     return avx2::composite_backward(opacities, channels, b, grad_out, grad_means2d,
-                                    grad_conics, grad_opacities, grad_features, threads);
+                                    grad_conics, grad_opacities, grad_features,
+                                    absgrad_means2d, threads);
 #endif
   baseline::composite_backward(opacities, channels, b, grad_out, grad_means2d,
-                               grad_conics, grad_opacities, grad_features, threads);
+                               grad_conics, grad_opacities, grad_features, absgrad_means2d,
+                               threads);
 }
 
 }  // namespace rs

@@ -71,11 +71,13 @@ void composite_forward(const float* features, int channels, Binning& b, float* o
 
 // Gradients of means2d (M, 2), conics (M, 3), opacities (M) and features (M, D) from the
 // gradient of the output (C, H, W, D + 1), after composite_forward on the same binning;
-// the gradient arrays must hold zeros. The opacities are those of the binning.
+// the gradient arrays must hold zeros. The opacities are those of the binning. When
+// absgrad_means2d (M, 2) is not null, it gets the means' absolute gradient (AbsGS): the sum
+// over pixels of each pixel's |contribution|, per axis.
 void composite_backward(const float* opacities, int channels,
                         const Binning& b, const float* grad_out, float* grad_means2d,
                         float* grad_conics, float* grad_opacities, float* grad_features,
-                        int threads);
+                        float* absgrad_means2d, int threads);
 
 // Cameras of a projection: C views of one image size, each rendering a window of it.
 struct Views {

@@ -94,10 +94,12 @@ PyObject* py_forward(PyObject*, PyObject* args) {
 
 PyObject* py_backward(PyObject*, PyObject* args) {
   PyObject* capsule;
-  unsigned long long opacities, grad_out, g_means2d, g_conics, g_opacities, g_features;
+  unsigned long long opacities, grad_out, g_means2d, g_conics, g_opacities, g_features,
+      absgrad_means2d;  // 0: not wanted
   int channels, threads;
-  if (!PyArg_ParseTuple(args, "OKiKKKKKi", &capsule, &opacities, &channels, &grad_out,
-                        &g_means2d, &g_conics, &g_opacities, &g_features, &threads))
+  if (!PyArg_ParseTuple(args, "OKiKKKKKKi", &capsule, &opacities, &channels, &grad_out,
+                        &g_means2d, &g_conics, &g_opacities, &g_features, &absgrad_means2d,
+                        &threads))
     return nullptr;
   rs::Binning* b = binning_of(capsule);
   if (!b) return nullptr;
@@ -110,7 +112,7 @@ PyObject* py_backward(PyObject*, PyObject* args) {
         rs::composite_backward(ptr<const float>(opacities), channels, *b,
                                ptr<const float>(grad_out), ptr<float>(g_means2d),
                                ptr<float>(g_conics), ptr<float>(g_opacities),
-                               ptr<float>(g_features), threads);
+                               ptr<float>(g_features), ptr<float>(absgrad_means2d), threads);
       }))
     return nullptr;
   Py_RETURN_NONE;
@@ -192,7 +194,8 @@ PyMethodDef kMethods[] = {
      "forward(binning, features, D, out, threads): out (C, H, W, D + 1)"},
     {"backward", py_backward, METH_VARARGS,
      "backward(binning, opacities, D, grad_out, grad_means2d, grad_conics,"
-     " grad_opacities, grad_features, threads): adds into the (zero) gradients"},
+     " grad_opacities, grad_features, absgrad_means2d, threads): adds into the (zero)"
+     " gradients; absgrad_means2d 0: not wanted"},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef kModule = {PyModuleDef_HEAD_INIT, "_rasterize_cpp",
