@@ -216,31 +216,6 @@ def test_floater_gate_takes_what_is_in_front_of_the_surface_under_rain():
     assert faint[0, 0].item() == pytest.approx(0.4)  # rain below the scale gates in proportion
 
 
-def test_floater_gate_over_a_neighbourhood_spares_the_near_side_of_a_depth_edge():
-    from rainyscape.losses.free_space import FloaterOpacity, front_floater_gate, nearest_surface
-
-    # a near object (depth 4) on columns 0-3 before a far wall (depth 10); the edge column 4
-    # renders a blend (7), and nothing was hit in the last column
-    depth = torch.full((1, 1, 8, 8), 10.0)
-    depth[..., :4] = 4.0
-    depth[..., 4] = 7.0
-    depth[..., 7] = 0.0
-    near = nearest_surface(depth, 3)
-    assert near[0, 0, 3].tolist() == [4.0, 4.0, 4.0, 4.0, 4.0, 7.0, 10.0, 10.0]
-    assert torch.equal(nearest_surface(depth, 1), depth)
-    rain = torch.full((1, 3, 8, 8), 0.2)  # rain predicted everywhere
-    # the near object's Gaussian at the edge column; a floater at depth 2 in front of the wall
-    means2d = torch.tensor([[[4.5, 3.5], [6.5, 3.5]]])
-    depths = torch.tensor([[4.2, 2.0]])
-    visible = torch.ones(1, 2, dtype=torch.bool)
-    own = front_floater_gate(rain, depth, means2d, depths, visible, margin=0.1, rain_scale=0.05)
-    around = front_floater_gate(rain, depth, means2d, depths, visible, margin=0.1, rain_scale=0.05, neighbourhood=3)
-    assert own.tolist() == [[1.0, 1.0]]  # the blended depth puts the near side "in front"
-    assert around.tolist() == [[0.0, 1.0]]  # the nearest surface around it does not; the floater stays
-    with pytest.raises(ConfigError, match="odd"):
-        FloaterOpacity(FloaterOpacity.Config(neighbourhood=4))
-
-
 def test_floater_opacity_lowers_only_the_gated_gaussians_opacity():
     from rainyscape.losses.free_space import FloaterOpacity
 

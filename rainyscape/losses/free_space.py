@@ -17,7 +17,6 @@ from torch import Tensor
 
 from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded
-from rainyscape.errors import ConfigError
 
 
 def sample_at(image: Tensor, points: Tensor) -> Tensor:
@@ -29,31 +28,18 @@ def sample_at(image: Tensor, points: Tensor) -> Tensor:
     return out[..., 0].transpose(1, 2)
 
 
-def nearest_surface(depth: Tensor, size: int) -> Tensor:
-    """The smallest rendered depth (C, 1, h, w) over each pixel's ``size`` x ``size``
-    neighbourhood (odd; 1: the pixel's own), ignoring pixels where nothing was hit (0);
-    0 where the whole neighbourhood is empty."""
-    if size <= 1:
-        return depth
-    far = torch.where(depth > 0, depth, torch.full_like(depth, float("inf")))
-    near = -F.max_pool2d(-far, size, stride=1, padding=size // 2)
-    return torch.where(torch.isfinite(near), near, torch.zeros_like(near))
-
-
 def front_floater_gate(rain: Tensor, depth: Tensor, means2d: Tensor, centre_depths: Tensor, visible: Tensor,
-                       margin: float, rain_scale: float, neighbourhood: int = 1) -> Tensor:
+                       margin: float, rain_scale: float) -> Tensor:
     """Per camera and Gaussian (C, N), in [0, 1]: how much rain its centre's pixel shows
     (the rain's channel mean over ``rain_scale``, clipped), where the Gaussian is visible and
-    nearer than ``1 - margin`` times the nearest rendered surface around that pixel (over a
-    ``neighbourhood`` x ``neighbourhood`` window: at a depth edge the blended depth of the
-    edge's pixels lies behind the near side's Gaussians, which are no floaters); 0 elsewhere.
+    nearer than ``1 - margin`` times the rendered depth there; 0 elsewhere.
 
     rain (C, 3, h, w), depth (C, 1, h, w) rendered (0: nothing hit), means2d (C, N, 2) window
     pixels, centre_depths (C, N) the Gaussians' centres' z in each camera (the model's, not
     the scene's depth), visible (C, N) bool. Nothing here is ground truth: the rain is the
     head's prediction and the depth the field's render."""
     rain_at = sample_at(rain.mean(1, keepdim=True), means2d)[..., 0]
-    surface = sample_at(nearest_surface(depth, neighbourhood), means2d)[..., 0]
+    surface = sample_at(depth, means2d)[..., 0]
     front = visible & (surface > 0) & (centre_depths > 0) & (centre_depths < (1.0 - margin) * surface)
     return (rain_at / rain_scale).clamp(0.0, 1.0) * front
 
@@ -71,15 +57,9 @@ class FloaterOpacity(Loss):
     class Config:
         margin: float = bounded(0.1, 0.0, 1.0)  # in front: nearer than (1 - margin) x the rendered depth
         rain_scale: float = bounded(0.05, 1e-6)  # rain of this brightness (channel mean) or more gates fully
-        # the surface a Gaussian must be in front of: the nearest rendered depth over this
-        # odd-sized window around its pixel (1: the pixel's own)
-        neighbourhood: int = bounded(1, 1, 31)
 
     def __init__(self, config: "FloaterOpacity.Config | None" = None):
         super().__init__(config or self.Config())
-        if self.config.neighbourhood % 2 == 0:
-            raise ConfigError(f"floater-opacity: neighbourhood must be odd (a window centred on the pixel), "
-                              f"got {self.config.neighbourhood}")
 
     def __call__(self, ctx: LossContext) -> Tensor:
         out = ctx.output
@@ -88,8 +68,7 @@ class FloaterOpacity(Loss):
             return ctx.rendered.new_zeros(())
         c = self.config
         gate = front_floater_gate(ctx.layers["rain"].detach(), out.depth.detach(), extras["means2d"].detach(),
-                                  extras["centre_depths"], (extras["radii"] > 0).all(-1), c.margin, c.rain_scale,
-                                  c.neighbourhood)
+                                  extras["centre_depths"], (extras["radii"] > 0).all(-1), c.margin, c.rain_scale)
         if ctx.record:
             self.metrics = {"gated_share": float((gate > 0).float().mean())}
         pixels = ctx.rendered.shape[0] * ctx.rendered.shape[-2] * ctx.rendered.shape[-1]
