@@ -5,10 +5,11 @@ For each training view of a run on a `scenes=distractors` scene it renders the s
 (B) and the view's distractor layer (D, alpha_D), and reports, averaged over the views:
 alpha_D on the transients' pixels (where the input differs from the clean view by more
 than 0.05) and elsewhere; and the static render's depth on the transients relative to the
-scene's true depth there (normalised by the same ratio on the other pixels, so the run's
-scene scale drops out): about 1 means the scene's Gaussians painted the transient onto the
-surface behind it, well below 1 that they built a floater in front of the camera. The
-clean views and depths are the simulator's (evaluation only). With ``--strip PNG`` it also
+scene's true depth there (normalised by the same ratio on the other pixels): about 1 means
+the scene's Gaussians painted the transient onto the surface behind it, well below 1 that
+they built a floater in front of the camera. The clean views and depths are the
+simulator's, which the scene loader keeps for evaluation (``SceneData.clean_images``,
+``depths``); training never saw them. With ``--strip PNG`` it also
 writes, for the first three views, input | clean | B | alpha_D | D + (1 - alpha_D) B.
 
   python benchmarks/distractor_layer.py RUN_DIR [--strip PNG]
@@ -24,7 +25,6 @@ import numpy as np
 import torch
 
 from rainyscape.cameras import Window
-from rainyscape.dataparsers.depth import read_depth_mat
 from rainyscape.engine.run import load_run
 
 TRANSIENT = 0.05  # |input - clean| above this in some channel: a transient's pixel
@@ -49,15 +49,14 @@ def main() -> None:
     pipe, step = load_run(args.run, device="cpu")
     pipe.field.eval()
     head = pipe.heads["rain_head"].eval()
-    scene, folder = pipe.scene, Path(pipe.config.data)
+    scene = pipe.scene
+    if scene.clean_images is None or scene.depths is None:
+        raise SystemExit(f"{args.run}: its scene has no clean views or depths (a simulated scene is needed)")
     rows, strip = [], []
     with torch.no_grad():
         for view in head.views:
-            name = scene.image_names[view]
-            rainy = torch.tensor(iio.imread(folder / "images_rain" / name)[..., :3]).float() / 255
-            clean = torch.tensor(iio.imread(folder / "images_wo_rain" / name)[..., :3]).float() / 255
-            depth_file = next(p for p in (folder / "depth").iterdir() if p.stem == Path(name).stem)
-            true_depth = torch.tensor(read_depth_mat(depth_file, "depth", (scene.width, scene.height)))
+            rainy, clean = (images[view].float() / 255 for images in (scene.images, scene.clean_images))
+            true_depth = scene.depths[view]
             static, depth, colour, alpha = view_layers(pipe, view)
             transient = (rainy - clean).abs().amax(-1) > TRANSIENT
             ratio = depth / true_depth.clamp_min(1e-6)

@@ -101,8 +101,10 @@ def mean_grad2d_statistic(output: RenderOutput, absgrad: bool = False) -> tuple[
     and where each Gaussian was visible (C, N); None when the render carried no gradient.
     ``absgrad``: of its absolute gradient instead (AbsGS; rendered with ``absgrad=True``)."""
     means2d = output.extras.get("means2d")
-    grad = None if means2d is None else getattr(means2d, "absgrad", None) if absgrad else means2d.grad
-    if grad is None or means2d.grad is None:
+    if means2d is None or means2d.grad is None:
+        return None
+    grad = getattr(means2d, "absgrad", None) if absgrad else means2d.grad
+    if grad is None:
         return None
     (width, height), (w, h) = output.extras["image_size"], output.extras["window_size"]
     # Pixel gradients of a batch of C windows with a mean loss -> the 3DGS statistic.
