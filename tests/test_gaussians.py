@@ -8,6 +8,7 @@ import copy
 import json
 import math
 from dataclasses import replace
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -167,6 +168,19 @@ def test_schedule_shape_long_run_is_the_papers():
     refines = [it for it in range(1, 30_001) if s.refines_at(it)]
     assert refines[0] == 600 and refines[-1] == 14_900 and len(refines) == 144
     assert [s.sh_degree_at(step, 3) for step in (0, 998, 999, 1999, 2999, 29_999)] == [0, 0, 1, 2, 3, 3]
+
+
+@pytest.mark.parametrize("method", ["3dgs", "rainyscape-3dgs", "rainyscape-plus", "robust-3dgs", "desplat"])
+def test_gpu_recipe_cut_short_keeps_the_papers_refinement_interval(method):
+    """The GPU recipe at 30k steps is the paper's schedule; cut short, its window shrinks but
+    refinements stay 100 steps apart (stretched to 17 at 5k steps, a run without a Gaussian
+    cap grew fern's 569 points to 938k Gaussians: docs/profiles.md)."""
+    opts = method_config(method, ["profile=gpu", "trainer.device=cpu"]).field.options
+    def schedule(steps):
+        return GaussianField.schedule(SimpleNamespace(config=opts), steps)
+    full, short = schedule(30_000), schedule(5000)
+    assert (full.stop, full.every) == (15_000, 100)
+    assert (short.stop, short.every) == (2500, 100)
 
 
 def test_schedule_shape_short_runs_leave_time_to_recover():

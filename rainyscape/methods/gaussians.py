@@ -33,9 +33,10 @@ CPU_RAIN_HEAD = {"lowres_channels": (32, 32, 32, 32), "highres_channels": 16}
 # 20k points filled in at the depth of the nearest SfM points (small views give few).
 CPU_GAUSSIANS = {"max_gaussians": 50_000, "pixels_per_gaussian": 5, "min_refine_every": 50, "init_fill": 20_000}
 # The GPU recipe: the 3DGS paper's run, its schedule unscaled (densify from 500 to 15k every
-# 100, resets every 3k), no Gaussian cap.
+# 100, resets every 3k), no Gaussian cap. Cut short, the refinements stay 100 steps apart (at
+# 17, fern grew to 938k Gaussians in 2800 steps: docs/benchmarks.md, "The GPU recipes on an H200").
 GS_GPU = ["trainer.max_iters=30000", "trainer.iters_per_view=0", "field.init_fill=0", "field.max_gaussians=0", "field.pixels_per_gaussian=0",
-          "field.min_refine_every=0", "trainer.eval_every=5000", "trainer.checkpoint_every=5000"]
+          "field.min_refine_every=100", "trainer.eval_every=5000", "trainer.checkpoint_every=5000"]
 
 gaussians_3dgs = MethodSpec(
     name="3dgs",
