@@ -24,6 +24,9 @@ and the rain method's step broken down by where the time goes:
 Times are wall clock on CUDA (every timed section synchronised, so the breakdown adds up)
 and this process's CPU time on a CPU (``time.process_time``: on a shared, loaded machine
 wall time mostly measures the other jobs; with one thread CPU time is the step's cost).
+Also reported: the aten operators each step dispatches, in all and per section (a GPU
+launches at least one kernel per operator, so a joint step with many small operators is
+launch-bound there however fast the device).
 Extra key=value overrides go to both methods of a pair.
 """
 
@@ -39,6 +42,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path.insert(0, str(Path(__file__).parent))
 from fields import build  # noqa: E402
@@ -46,13 +50,35 @@ from fields import build  # noqa: E402
 SECTIONS = ("render", "head", "losses", "backward", "optimizers", "latents", "callbacks", "other")
 
 
-class Timer:
-    """Accumulates wall time per section of one step (nested sections are not double counted:
-    only the outermost open section is charged)."""
+# Operators that hand a value to the host: on a GPU each waits for every kernel queued before it.
+READS = {"_local_scalar_dense", "is_nonzero", "equal"}
 
-    def __init__(self, device: torch.device):
-        self.sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-        self.clock = clock(device)
+
+class OpCounter(TorchDispatchMode):
+    """Counts the aten operators dispatched, forward and backward. On a GPU each is at least
+    one kernel launch and a trip through Python and the dispatcher, so a step's count is its
+    launch-bound cost, whatever the device it is counted on. ``reads`` counts those that hand
+    a value to the host (``float(t)``, ``t.item()``, ``if t:``)."""
+
+    def __init__(self):
+        super().__init__()
+        self.count = 0
+        self.reads = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.count += 1
+        self.reads += func.overloadpacket.__name__ in READS
+        return func(*args, **(kwargs or {}))
+
+
+class Timer:
+    """Accumulates wall time (or any other ``clock``, such as an operator count) per section
+    of one step (nested sections are not double counted: only the outermost open section is
+    charged)."""
+
+    def __init__(self, device: torch.device, clock_fn=None):
+        self.sync = torch.cuda.synchronize if device.type == "cuda" and clock_fn is None else (lambda: None)
+        self.clock = clock_fn or clock(device)
         self.totals: dict[str, float] = defaultdict(float)
         self.depth = 0
 
@@ -108,7 +134,7 @@ def timed_step(trainer, timer: Timer | None) -> float:
     import rainyscape.engine.trainer as trainer_module
 
     sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
-    now = clock(trainer.device)
+    now = timer.clock if timer is not None else clock(trainer.device)
     if timer is None:
         sync()
         t0 = now()
@@ -176,8 +202,24 @@ def run_pair(plain: str, rain: str, args) -> dict:
         "breakdown_ms": {k: round(1e3 * timer.totals.get(k, 0.0) / args.repeats, 2) for k in SECTIONS},
         "breakdown_share": {k: round(timer.totals.get(k, 0.0) / total, 3) for k in SECTIONS},
     }
+    result.update(count_ops(a, b))
     print(json.dumps(result), flush=True)
     return result
+
+
+def count_ops(a, b) -> dict:
+    """Operators dispatched in one more step of each pipeline, and the rain step's per section
+    (counted after the timing: the counting itself slows a step)."""
+    counter = OpCounter()
+    ops = Timer(b.device, clock_fn=lambda: counter.count)
+    instrument(b, ops)
+    with counter:
+        timed_step(a, None)
+        plain, plain_reads = counter.count, counter.reads
+        timed_step(b, ops)
+    return {"plain_step_ops": plain, "rain_step_ops": counter.count - plain,
+            "plain_step_reads": plain_reads, "rain_step_reads": counter.reads - plain_reads,
+            "ops_by_section": {k: int(ops.totals.get(k, 0)) for k in SECTIONS}}
 
 
 def main(argv: list[str]) -> int:

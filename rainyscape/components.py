@@ -181,6 +181,16 @@ class LossContext:
     # False while a head's latent update evaluates the loss as its energy (on a crop): terms
     # then leave what they record (metrics, estimated angles) to the network update's call
     record: bool = True
+    # What terms derive from the batch alone (the input, the detached render and depth), not
+    # from any layer: a latent update evaluates its energy several times on one context, and
+    # these stay the same (copies made with ``replace`` share it; a new window needs a new one)
+    memo: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def memoized(self, key, compute):
+        """``compute()``, once per context and key (see ``memo``)."""
+        if key not in self.memo:
+            self.memo[key] = compute()
+        return self.memo[key]
 
     @property
     def rain(self) -> Tensor | None:

@@ -13,11 +13,12 @@ from rainyscape.config import LossConfig
 
 
 def compute_losses(terms: dict[str, tuple[LossConfig, Loss]], ctx: LossContext
-                   ) -> tuple[Tensor, dict[str, float]]:
-    """Weighted sum of the loss terms, and each term's value by its key; a term with
-    ``detach`` sees the render (``rendered``) or that layer without its gradient."""
+                   ) -> tuple[Tensor, dict[str, Tensor]]:
+    """Weighted sum of the loss terms, and each term's value (detached, on the device: reading
+    it waits for the device, which the caller does only for what it logs) by its key; a term
+    with ``detach`` sees the render (``rendered``) or that layer without its gradient."""
     total = torch.zeros((), device=ctx.rendered.device)
-    values: dict[str, float] = {}
+    values: dict[str, Tensor] = {}
     for key, (cfg, term) in terms.items():
         c = ctx
         if cfg.detach == "rendered":
@@ -26,5 +27,11 @@ def compute_losses(terms: dict[str, tuple[LossConfig, Loss]], ctx: LossContext
             c = replace(ctx, layers={**ctx.layers, cfg.detach: ctx.layers[cfg.detach].detach()})
         value = term(c)
         total = total + cfg.weight * value
-        values[key] = float(value.detach())
+        values[key] = value.detach()
     return total, values
+
+
+def energy_terms(terms: dict[str, tuple[LossConfig, Loss]], layer: str) -> dict[str, tuple[LossConfig, Loss]]:
+    """The terms a layer's latent energy needs: not those that see the layer detached (they
+    are constant in it, so they add nothing to its gradient)."""
+    return {k: v for k, v in terms.items() if v[0].detach != layer}

@@ -24,7 +24,7 @@ from rainyscape.components import (Energy, LatentModel, LossContext, ParamGroup,
 from rainyscape.config import PhaseConfig
 from rainyscape.engine import snapshot
 from rainyscape.engine.checkpoint import checkpoint_path, load_checkpoint
-from rainyscape.engine.loss_sum import compute_losses
+from rainyscape.engine.loss_sum import compute_losses, energy_terms
 from rainyscape.engine.phases import PhaseSchedule
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.engine.progress import ProgressBar
@@ -167,7 +167,7 @@ class Trainer:
         field_target = target if not layers else (target - (fit - out.rgb.detach())).detach()
         for key, value in self.pipeline.field.extra_losses(out, field_target).items():
             total = total + value
-            values[f"field.{key}"] = float(value.detach())
+            values[f"field.{key}"] = value.detach()
         for opt in self.optimizers.values():
             opt.zero_grad(set_to_none=True)
         total.backward()
@@ -185,7 +185,8 @@ class Trainer:
         for cb in self.callbacks:
             cb.after_step(state)
         self.step += 1
-        record = {"step": self.step, "phase": name, "loss": float(total.detach()), "terms": values,
+        record = {"step": self.step, "phase": name, "loss": float(total.detach()),
+                  "terms": {k: float(v) for k, v in values.items()},
                   "psnr_input": float(psnr(fit.clamp(0, 1), target))}
         if measured:
             record["metrics"] = measured
@@ -218,16 +219,23 @@ class Trainer:
         """The phase's loss as a function of one layer's prediction on a sub-window, with the
         render (detached) and the other layers held at this step's values."""
         base = replace(ctx, rendered=ctx.rendered.detach(), record=False)
+        terms = energy_terms(terms, layer)
+        crops: dict[int, LossContext] = {}  # a latent update's steps share its crop, and so its memo
+
+        def crop(sub: Window) -> LossContext:
+            if (sub.width, sub.height) == (window.width, window.height):
+                return base
+            if id(sub) not in crops:
+                local = sub.relative_to(window)
+                crops.clear()
+                crops[id(sub)] = replace(base, rendered=local.crop(base.rendered), target=local.crop(base.target),
+                                         layers={k: local.crop(v) for k, v in base.layers.items()},
+                                         output=crop_output(base.output, local), window=sub, memo={})
+            return crops[id(sub)]
 
         def energy(sub: Window, prediction: Tensor) -> Tensor:
-            c = base
-            if (sub.width, sub.height) != (window.width, window.height):
-                local = sub.relative_to(window)
-                c = replace(base, rendered=local.crop(base.rendered), target=local.crop(base.target),
-                            layers={k: local.crop(v) for k, v in base.layers.items()},
-                            output=crop_output(base.output, local), window=sub)
-            c = replace(c, layers={**c.layers, layer: prediction})
-            return compute_losses(terms, c)[0]
+            c = crop(sub)
+            return compute_losses(terms, replace(c, layers={**c.layers, layer: prediction}))[0]
 
         return energy
 

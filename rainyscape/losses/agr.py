@@ -94,7 +94,7 @@ class AdaptiveGradientRotation(Loss):
 
     def __call__(self, ctx: LossContext) -> Tensor:
         rain = ctx.rain if ctx.rain is not None else torch.zeros_like(ctx.rendered)
-        theta, valid = self.estimate(ctx)
+        theta, valid = ctx.memoized((id(self), "angles"), lambda: self.estimate(ctx))
         if ctx.record:  # the network update's angles, not a latent update's crop
             self._record(ctx.view_ids, theta, valid)
         return agr_loss(ctx.rendered, ctx.target, rain, theta, valid,

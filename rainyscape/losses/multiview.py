@@ -49,7 +49,10 @@ class _Evidence:
 
     def reference(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
         """The median of what the neighbour views see at the batch's pixels (B, 3, h, w; NaN
-        where undefined) and where it is defined (B, 1, h, w)."""
+        where undefined) and where it is defined (B, 1, h, w); once per batch (``ctx.memo``)."""
+        return ctx.memoized((id(self), "reference"), lambda: self._reference(ctx))
+
+    def _reference(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
         if ctx.output is None or ctx.output.depth is None or ctx.window is None:
             raise ConfigError("multi-view rain evidence needs the field's depth and the batch window")
         depth = ctx.output.depth.detach()
