@@ -185,9 +185,11 @@ class Trainer:
         for cb in self.callbacks:
             cb.after_step(state)
         self.step += 1
-        record = {"step": self.step, "phase": name, "loss": float(total.detach()),
-                  "terms": {k: float(v) for k, v in values.items()},
-                  "psnr_input": float(psnr(fit.clamp(0, 1), target))}
+        # the step's numbers in one read from the device (each read waits for its queue)
+        loss, fit_psnr, *terms_read = torch.stack([total.detach().float(), psnr(fit.clamp(0, 1), target).float(),
+                                                  *(v.float() for v in values.values())]).tolist()
+        record = {"step": self.step, "phase": name, "loss": loss, "terms": dict(zip(values, terms_read)),
+                  "psnr_input": fit_psnr}
         if measured:
             record["metrics"] = measured
         return record
