@@ -58,7 +58,8 @@ class OpCounter(TorchDispatchMode):
     """Counts the aten operators dispatched, forward and backward. On a GPU each is at least
     one kernel launch and a trip through Python and the dispatcher, so a step's count is its
     launch-bound cost, whatever the device it is counted on. ``reads`` counts those that hand
-    a value to the host (``float(t)``, ``t.item()``, ``if t:``)."""
+    a value to the host (``float(t)``, ``t.item()``, ``if t:``); a lower bound: ``tolist()``
+    and ``cpu()`` dispatch nothing on a CPU tensor, and a GPU waits for them too."""
 
     def __init__(self):
         super().__init__()
