@@ -65,6 +65,25 @@ def test_windows_equal_crops_of_the_full_view(upscale, latent_channels):
             assert torch.allclose(windows[b], reference[:, y:y + 11, x:x + 13], atol=1e-6)
 
 
+def test_masks_are_kept_for_the_same_window_only(monkeypatch):
+    """A latent update predicts one crop several times, so the head keeps the last window's
+    masks; another window, even with the same view ids object, gets its own."""
+    scene = _scene()
+    head, fresh = _head(scene), _head(scene)
+    built = []
+    region_masks = head_module.region_masks
+    monkeypatch.setattr(head_module, "region_masks", lambda *a: built.append(1) or region_masks(*a))
+    views = torch.tensor([1, 2])
+    corner = Window(torch.tensor([0, 32]), torch.tensor([0, 26]), 13, 11)
+    inside = Window(torch.tensor([17, 5]), torch.tensor([14, 3]), 13, 11)
+    with torch.no_grad():
+        first = head(views, corner)
+        assert torch.equal(head(views, corner), first) and len(built) == 1  # kept
+        for window in (inside, corner):
+            assert torch.equal(head(views, window), fresh(views.clone(), window))
+    assert len(built) == 5  # the head: corner, inside, corner; the fresh head: inside, corner
+
+
 @pytest.mark.parametrize("share", [0, 10**9])
 def test_gathered_and_dense_latent_regions_agree(monkeypatch, share):
     """Both ways of computing a latent region (rows of the last MLP layer gathered, or the

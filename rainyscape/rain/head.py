@@ -61,6 +61,17 @@ def _inside(start_y: Tensor, start_x: Tensor, ly: int, lx: int, height: int, wid
     return (in_y[:, :, None] & in_x[:, None, :])[:, None]
 
 
+def region_masks(ay: Tensor, ax: Tensor, ly: int, lx: int, layers: int, upscale: int,
+                 latent_hw: tuple[int, int], image_hw: tuple[int, int]) -> list[Tensor]:
+    """The float masks of a window's regions (see :meth:`RainPredictor.forward`): the latent
+    region and each low-res layer's output (``layers`` valid 3x3 convolutions from the latent
+    region, each one pixel smaller a side), then the full-resolution region."""
+    m, f = layers, upscale
+    masks = [_inside(ay - m + k, ax - m + k, ly + 2 * (m - k), lx + 2 * (m - k), *latent_hw).float()
+             for k in range(m)]
+    return masks + [_inside(f * ay, f * ax, f * ly, f * lx, *image_hw).float()]
+
+
 class RainPredictor(RainHead):
     """Rain head: scene / view / camera embeddings -> MLP latent map -> CNN + PixelShuffle."""
 
@@ -127,6 +138,7 @@ class RainPredictor(RainHead):
             raise ConfigError(f"rain_head.initial_rain must be in (0, 0.5), got {c.initial_rain}")
         self._init_cnn()
         self.lowres_layers = len(self.lowres) + 1  # valid 3x3 convs at latent resolution
+        self._last_masks: tuple | None = None  # (view_ids, window, masks): see _masks
 
     @torch.no_grad()
     def _init_cnn(self) -> None:
@@ -170,20 +182,29 @@ class RainPredictor(RainHead):
         ay, ax = torch.div(y0 - 1, f, rounding_mode="floor"), torch.div(x0 - 1, f, rounding_mode="floor")
         ly, lx = (window.height + f) // f + 1, (window.width + f) // f + 1
         m = self.lowres_layers
-        x = self.latent_region(view_ids, ay - m, ax - m, ly + 2 * m, lx + 2 * m)
+        masks = self._masks(view_ids, window, ay, ax, ly, lx)
+        x = self.latent_region(view_ids, ay - m, ax - m, ly + 2 * m, lx + 2 * m, masks[0])
         if self.config.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
         with self._autocast(x.device):
             for i, conv in enumerate(self.lowres):
-                x = F.relu(conv(x))
-                k = i + 1
-                x = x * _inside(ay - m + k, ax - m + k, ly + 2 * (m - k), lx + 2 * (m - k),
-                                self.latent_h, self.latent_w).to(x.dtype)
+                x = F.relu(conv(x)) * masks[i + 1].to(x.dtype)
             x = F.pixel_shuffle(F.relu(self.to_subpixels(x)), f)  # region starts at (f ay, f ax)
-            x = x * _inside(f * ay, f * ax, f * ly, f * lx, self.height, self.width).to(x.dtype)
+            x = x * masks[-1].to(x.dtype)
             x = self.to_rgb(x)  # region starts at (f ay + 1, f ax + 1)
         x = _crop(x.float(), y0 - f * ay - 1, x0 - f * ax - 1, window.height, window.width)
         return self.bound(x)
+
+    def _masks(self, view_ids: Tensor, window: Window, ay: Tensor, ax: Tensor, ly: int, lx: int) -> list[Tensor]:
+        """:func:`region_masks` of the window, kept for the last (view_ids, window) asked: a
+        latent update predicts the same crop at each of its steps, and on a GPU the masks'
+        small operators cost more launches than the convolutions."""
+        last = self._last_masks
+        if last is None or last[0] is not view_ids or last[1] is not window:
+            masks = region_masks(ay, ax, ly, lx, self.lowres_layers, self.config.upscale,
+                                 (self.latent_h, self.latent_w), (self.height, self.width))
+            self._last_masks = last = (view_ids, window, masks)
+        return last[2]
 
     def _autocast(self, device: torch.device):
         enabled = self.config.autocast and device.type == "cuda"
@@ -208,9 +229,11 @@ class RainPredictor(RainHead):
         h = F.relu(self.embed_state(state) + self.embed_camera(self.camera_vectors[view_ids]))
         return torch.tanh(self.hidden(h))
 
-    def latent_region(self, view_ids: Tensor, start_y: Tensor, start_x: Tensor, ly: int, lx: int) -> Tensor:
+    def latent_region(self, view_ids: Tensor, start_y: Tensor, start_x: Tensor, ly: int, lx: int,
+                      inside: Tensor) -> Tensor:
         """Rows [start_y, start_y + ly) x cols [start_x, start_x + lx) of each view's latent map
-        (B, C, ly, lx), zero outside the map, computing only those outputs of the last layer."""
+        (B, C, ly, lx), zero outside the map (``inside``, its float mask), computing only those
+        outputs of the last layer."""
         code = self.embedding(view_ids)
         ys = start_y[:, None] + torch.arange(ly, device=code.device)
         xs = start_x[:, None] + torch.arange(lx, device=code.device)
@@ -229,7 +252,7 @@ class RainPredictor(RainHead):
             weight = F.embedding(index, self.to_map.weight)  # (B, C, ly, lx, width)
             bias = self.to_map.bias[index]
             latent = F.relu(torch.einsum("bcyxk,bk->bcyx", weight, code) + bias)
-        return latent * _inside(start_y, start_x, ly, lx, self.latent_h, self.latent_w)
+        return latent * inside
 
 
 def _crop(x: Tensor, off_y: Tensor, off_x: Tensor, h: int, w: int) -> Tensor:
