@@ -222,18 +222,17 @@ class Trainer:
         render (detached) and the other layers held at this step's values."""
         base = replace(ctx, rendered=ctx.rendered.detach(), record=False)
         terms = energy_terms(terms, layer)
-        crops: dict[int, LossContext] = {}  # a latent update's steps share its crop, and so its memo
+        last: list = []  # [sub-window, its context]: a latent update's steps share one crop and its memo
 
         def crop(sub: Window) -> LossContext:
             if (sub.width, sub.height) == (window.width, window.height):
                 return base
-            if id(sub) not in crops:
+            if not last or last[0] is not sub:
                 local = sub.relative_to(window)
-                crops.clear()
-                crops[id(sub)] = replace(base, rendered=local.crop(base.rendered), target=local.crop(base.target),
-                                         layers={k: local.crop(v) for k, v in base.layers.items()},
-                                         output=crop_output(base.output, local), window=sub, memo={})
-            return crops[id(sub)]
+                last[:] = [sub, replace(base, rendered=local.crop(base.rendered), target=local.crop(base.target),
+                                        layers={k: local.crop(v) for k, v in base.layers.items()},
+                                        output=crop_output(base.output, local), window=sub, memo={})]
+            return last[1]
 
         def energy(sub: Window, prediction: Tensor) -> Tensor:
             c = crop(sub)
