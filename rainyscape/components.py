@@ -88,6 +88,10 @@ class Field(nn.Module):
     """A radiance field: renders windows of cameras. Knows nothing of rain."""
 
     description = ""
+    # Per-pixel quantities the field can add to its training renders' extras when a loss
+    # term asks (they cost time, so they are computed only then), and those asked for.
+    provides: tuple[str, ...] = ()
+    requested: frozenset[str] = frozenset()
 
     def render(self, cameras: Cameras, window: Window) -> RenderOutput:
         """Render ``window`` of each camera (B cameras, B window offsets).
@@ -105,6 +109,10 @@ class Field(nn.Module):
     def extra_losses(self, output: RenderOutput, target: Tensor) -> dict[str, Tensor]:
         """Field-internal losses given what ``output.rgb`` should match (e.g. a coarse network)."""
         return {}
+
+    def request(self, names: set[str]) -> None:
+        """Add ``names`` (from :attr:`provides`) to every training render's extras."""
+        self.requested = frozenset(names)
 
     def stats(self) -> dict[str, float]:
         """Numbers describing the field's current state (its size, resolution, cumulative counts
@@ -210,6 +218,7 @@ class Loss:
 
     phases: tuple[str, ...] = ()
     needs: tuple[str, ...] = ()
+    render_extras: tuple[str, ...] = ()  # per-pixel quantities it reads from the field's render (Field.provides)
     spatial = False
     description = ""
 

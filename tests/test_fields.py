@@ -202,6 +202,30 @@ def test_grid_distortion_loss_in_training_only_and_it_reaches_the_density(tiny_s
     assert off.extra_losses(off.train().render(cams, window), out.rgb) == {}
 
 
+def test_grid_gives_what_loss_terms_request_in_training_only(tiny_scene):
+    """``Field.request``: the grid adds the requested per-ray measures to its training
+    renders (with their gradient into the density), never to evaluation renders; the
+    pipeline refuses a term whose measure the field cannot give, naming the term."""
+    from rainyscape.engine.pipeline import build_pipeline
+
+    field = _field("grid", tiny_scene, resolution_init=24)
+    cams, window = _full(tiny_scene, [0])
+    assert "front_weight" not in field.train().render(cams, window).extras
+    field.request({"front_weight", "distortion"})
+    out = field.train().render(cams, window)
+    assert out.extras["front_weight"].shape == out.depth.shape and out.extras["distortion"].shape == out.depth.shape
+    assert field.extra_losses(out, out.rgb) == {}  # the field's own distortion term stays off
+    out.extras["front_weight"].sum().backward()
+    assert sum(float(p.grad.abs().sum()) for p in field.density_grid.factors()) > 0
+    with torch.no_grad():
+        assert not field.eval().render(cams, window).extras
+    nerf = config.method_config("rainyscape-nerf", ["losses.floater-rays.weight=1", "field.resolution_final=32"])
+    assert build_pipeline(nerf, tiny_scene, torch.device("cpu")).field.requested == {"front_weight"}
+    gs = config.method_config("rainyscape-plus", ["losses.floater-rays.weight=1"])
+    with pytest.raises(ConfigError, match="losses.floater-rays reads the 'front_weight'"):
+        build_pipeline(gs, tiny_scene, torch.device("cpu"))
+
+
 def test_points_box_bounds_the_grids_by_the_sparse_points(tiny_scene):
     g = torch.Generator().manual_seed(0)
     points = torch.randn(500, 3, generator=g) * torch.tensor([0.2, 0.1, 0.3]) + torch.tensor([0.1, 0.0, -0.2])

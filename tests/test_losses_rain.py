@@ -234,3 +234,41 @@ def test_floater_opacity_lowers_only_the_gated_gaussians_opacity():
     # a render without Gaussians (a ray field, a crop of a render) gives nothing
     plain = LossContext(output.rgb, output.rgb, {"rain": rain}, RenderOutput(rgb=output.rgb), torch.tensor([0]), 0, "joint")
     assert FloaterOpacity()(plain).item() == 0.0
+
+
+def test_front_weight_is_the_weight_in_front_of_the_median_depth():
+    """A ray with a floater (0.2 at distance 1) before its surface (0.7 at 5, 0.1 at 6): the
+    median depth is the surface's, the floater's weight alone is in front, and only it gets
+    the gradient. Without a floater nothing is in front."""
+    from rainyscape.fields.grid import front_weight
+
+    weights = torch.tensor([[0.2, 0.0, 0.7, 0.1], [0.0, 0.0, 0.9, 0.1]], requires_grad=True)
+    distance = torch.tensor([[1.0, 3.0, 5.0, 6.0], [1.0, 3.0, 5.0, 6.0]])
+    front = front_weight(weights, distance)
+    assert front.tolist() == pytest.approx([0.2, 0.0])
+    front.sum().backward()
+    assert weights.grad.tolist() == [[1.0, 1.0, 0.0, 0.0], [1.0, 1.0, 0.0, 0.0]]
+    # a floater holding most of the light is the surface as far as the median can tell
+    assert front_weight(torch.tensor([[0.6, 0.0, 0.3, 0.1]]), distance[:1]).item() == 0.0
+
+
+def test_floater_rays_weighs_each_ray_by_the_rain_at_its_pixel():
+    from rainyscape.losses.free_space import FloaterRays
+
+    rain = torch.zeros(1, 3, 2, 2)
+    rain[0, :, 0, 0] = 0.2  # rain at one pixel (over the scale), a trace at another
+    rain[0, :, 1, 1] = 0.01
+    front = torch.full((1, 1, 2, 2), 0.5, requires_grad=True)
+    output = RenderOutput(rgb=torch.zeros(1, 3, 2, 2), extras={"front_weight": front})
+    ctx = LossContext(output.rgb, output.rgb, {"rain": rain}, output, torch.tensor([0]), 0, "joint")
+    term = FloaterRays()
+    assert term.render_extras == ("front_weight",)
+    loss = term(ctx)
+    loss.backward()
+    assert loss.item() == pytest.approx(0.5 * (1.0 + 0.2) / 4)
+    assert front.grad.flatten().tolist() == pytest.approx([0.25, 0.0, 0.0, 0.05])
+    assert term.metrics["gate_mean"] == pytest.approx(1.2 / 4)
+    # a render without the measure (the field's cached views, a crop) gives nothing
+    plain = LossContext(output.rgb, output.rgb, {"rain": rain}, RenderOutput(rgb=output.rgb), torch.tensor([0]), 0, "joint")
+    assert term(plain).item() == 0.0
+    assert FloaterRays(FloaterRays.Config(measure="distortion")).render_extras == ("distortion",)

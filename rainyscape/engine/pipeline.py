@@ -46,6 +46,7 @@ def build_pipeline(config: PipelineConfig, scene: SceneData, device: torch.devic
              for key, comp in config.heads().items()}
     losses = {key: (cfg, registry.load("loss", cfg.name)(cfg.options)) for key, cfg in config.losses.items()}
     check_layers(config, heads, losses)
+    field.request(render_extras(config, field, losses))
     for _, term in losses.values():
         term.setup(scene, device)
     post = {k: registry.load("postprocess", p.name)(p.options) for k, p in config.postprocess.items()}
@@ -55,6 +56,22 @@ def build_pipeline(config: PipelineConfig, scene: SceneData, device: torch.devic
                               f"pipeline has no rain head; set rain_head=NAME, or use "
                               f"postprocess.streak-fusion=on (it needs none)")
     return Pipeline(config, scene, field, heads, losses, post, device)
+
+
+def render_extras(config: PipelineConfig, field: Field, losses: dict[str, tuple[LossConfig, Loss]]) -> set[str]:
+    """What the active loss terms read from the field's render beyond its images; a field
+    that cannot give one is refused, naming the term."""
+    wanted: set[str] = set()
+    for key, (cfg, term) in losses.items():
+        if not cfg.weight or not any(p in config.phases for p in cfg.phases):
+            continue
+        missing = [n for n in term.render_extras if n not in field.provides]
+        if missing:
+            raise ConfigError(f"losses.{key} reads the '{missing[0]}' of each ray from the field's render, "
+                              f"and field={config.field.name} does not give it; use a field that does "
+                              f"(grid), or drop the term (losses.{key}=none)")
+        wanted.update(term.render_extras)
+    return wanted
 
 
 def check_layers(config: PipelineConfig, heads: dict[str, ImageHead],

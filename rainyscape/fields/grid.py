@@ -81,6 +81,17 @@ def ray_distortion(weights: Tensor, valid: Tensor) -> Tensor:
     return distortion(weights.reshape(-1), (s1 - width).reshape(-1), s1.reshape(-1), ray, r)
 
 
+def front_weight(weights: Tensor, distance: Tensor, margin: float = 0.1) -> Tensor:
+    """Per ray (R,): the weight of its samples nearer than ``1 - margin`` times its median
+    depth (where half its weight is reached; a floater short of half does not move it), with
+    the gradient into every weight. Samples (R, N) sorted by ``distance`` along each ray."""
+    with torch.no_grad():
+        cum = torch.cumsum(weights, -1)
+        half = (cum < 0.5 * cum[:, -1:]).sum(-1, keepdim=True).clamp_max(weights.shape[1] - 1)
+        median = distance.gather(-1, half)
+    return (weights * (distance < (1.0 - margin) * median)).sum(-1)
+
+
 class ColorNet(nn.Module):
     """Colour features + view direction -> rgb: one small hidden layer."""
 
@@ -99,6 +110,7 @@ class GridField(RayField):
     """Fast field: explicit density + factorised colour grids, tiny MLP, coarse-to-fine growth."""
 
     description = "fast grid field (CPU/GPU): explicit grids + tiny MLP, occupancy grid, coarse-to-fine"
+    provides = ("distortion", "front_weight")
 
     @dataclass
     class Config:
@@ -277,8 +289,10 @@ class GridField(RayField):
         distance = self.space.distance(rays, t)
         depth = ((weights * distance).sum(-1) + rest * self.space.far) * z_scale
         out = {"rgb": rgb, "depth": depth, "acc": acc}
-        if self.training and self.config.distortion > 0:
+        if self.training and (self.config.distortion > 0 or "distortion" in self.requested):
             out["distortion"] = ray_distortion(weights, valid)
+        if self.training and "front_weight" in self.requested:
+            out["front_weight"] = front_weight(weights, distance)
         return out
 
     # -------------------------------------------------------------- optimisation

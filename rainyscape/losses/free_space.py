@@ -1,15 +1,20 @@
 """A free-space prior against rain held as scene (beyond the paper; issue 28).
 
-Rain fixed in 3D (a camera array's) is seen consistently by neighbouring views, so Gaussians
-fit it as geometry: small, semi-transparent floaters in front of the surface. Where the rain
-head sees rain, ``floater-opacity`` lowers the opacity of the Gaussians whose centre projects
-there and lies clearly in front of the rendered surface. The rain decides *where*; the
-depth test spares the surface behind the rain, which projects to the same pixels.
+Rain fixed in 3D (a camera array's) is seen consistently by neighbouring views, so a field
+fits it as geometry: small, semi-transparent floaters in front of the surface. The rain
+head's prediction decides *where* the prior acts; a depth test spares the surface behind
+the rain, which projects to the same pixels.
+
+- ``floater-opacity`` (Gaussians): lowers the opacity of the Gaussians whose centre projects
+  to rain and lies clearly in front of the rendered surface.
+- ``floater-rays`` (ray fields): on rays through rain, the weight the ray puts in front of its
+  median depth (``front``), or mip-NeRF 360's distortion of its weights (``distortion``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -28,6 +33,11 @@ def sample_at(image: Tensor, points: Tensor) -> Tensor:
     return out[..., 0].transpose(1, 2)
 
 
+def rain_gate(rain: Tensor, rain_scale: float) -> Tensor:
+    """Per pixel (B, 1, h, w), in [0, 1]: the rain's channel mean over ``rain_scale``, clipped."""
+    return (rain.mean(1, keepdim=True) / rain_scale).clamp(0.0, 1.0)
+
+
 def front_floater_gate(rain: Tensor, depth: Tensor, means2d: Tensor, centre_depths: Tensor, visible: Tensor,
                        margin: float, rain_scale: float) -> Tensor:
     """Per camera and Gaussian (C, N), in [0, 1]: how much rain its centre's pixel shows
@@ -38,10 +48,10 @@ def front_floater_gate(rain: Tensor, depth: Tensor, means2d: Tensor, centre_dept
     pixels, centre_depths (C, N) the Gaussians' centres' z in each camera (the model's, not
     the scene's depth), visible (C, N) bool. Nothing here is ground truth: the rain is the
     head's prediction and the depth the field's render."""
-    rain_at = sample_at(rain.mean(1, keepdim=True), means2d)[..., 0]
+    rain_at = sample_at(rain_gate(rain, rain_scale), means2d)[..., 0]
     surface = sample_at(depth, means2d)[..., 0]
     front = visible & (surface > 0) & (centre_depths > 0) & (centre_depths < (1.0 - margin) * surface)
-    return (rain_at / rain_scale).clamp(0.0, 1.0) * front
+    return rain_at * front
 
 
 class FloaterOpacity(Loss):
@@ -73,3 +83,34 @@ class FloaterOpacity(Loss):
             self.metrics = {"gated_share": float((gate > 0).float().mean())}
         pixels = ctx.rendered.shape[0] * ctx.rendered.shape[-2] * ctx.rendered.shape[-1]
         return (gate * extras["opacities"][None]).sum() / pixels
+
+
+class FloaterRays(Loss):
+    """The ray field's free-space prior: a per-ray measure of weight spread in front of the
+    surface, weighted by the rain the head sees at the ray's pixel, averaged over the batch's
+    pixels (a photometric term's scale). Renders without the measure (the field's cached
+    whole views, crops) contribute nothing: there is no field gradient to give."""
+
+    description = "free-space prior: weight in front of the ray's median depth (or its distortion) where the rain head sees rain"
+    phases = ("joint",)
+    needs = ("rain",)
+
+    EXTRAS = {"front": "front_weight", "distortion": "distortion"}
+
+    @dataclass
+    class Config:
+        measure: Literal["front", "distortion"] = "front"
+        rain_scale: float = bounded(0.05, 1e-6)  # rain of this brightness (channel mean) or more gates fully
+
+    def __init__(self, config: "FloaterRays.Config | None" = None):
+        super().__init__(config or self.Config())
+        self.render_extras = (self.EXTRAS[self.config.measure],)
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        value = None if ctx.output is None else ctx.output.extras.get(self.render_extras[0])
+        if value is None:
+            return ctx.rendered.new_zeros(())
+        gate = rain_gate(ctx.layers["rain"].detach(), self.config.rain_scale)
+        if ctx.record:
+            self.metrics = {"gate_mean": float(gate.mean())}
+        return (gate * value).mean()
