@@ -202,6 +202,45 @@ def test_grid_distortion_loss_in_training_only_and_it_reaches_the_density(tiny_s
     assert off.extra_losses(off.train().render(cams, window), out.rgb) == {}
 
 
+def test_grid_stats_count_the_samples_of_the_last_training_render(tiny_scene):
+    """``stats``: marched and shaded samples per ray come from training renders only, and an
+    occupancy grid that empties space cuts the marched ones."""
+    field = _field("grid", tiny_scene, resolution_init=24)
+    cams, window = _full(tiny_scene, [0])
+    assert "shaded_per_ray" not in field.stats()
+    with torch.no_grad():
+        field.eval().render(cams, window)
+    assert "shaded_per_ray" not in field.stats()
+    field.train().render(cams, window)
+    full = field.stats()
+    assert 0 < full["shaded_per_ray"] <= full["marched_per_ray"]
+    occupied = torch.zeros_like(field.occupancy.occupied)
+    occupied[:, :, : occupied.shape[2] // 2] = True  # half the cube empty
+    field.occupancy.set(occupied)
+    field.train().render(cams, window)
+    assert field.stats()["marched_per_ray"] < full["marched_per_ray"]
+
+
+def test_grid_near_gradient_scales_only_the_gradients_of_near_samples(tiny_scene):
+    """``field.near_gradient``: the same render, smaller gradients; next to none reach the
+    grids when every sample lies far inside the reference distance."""
+    cams, window = _full(tiny_scene, [0])
+
+    def grads(**extra):
+        field = _field("grid", tiny_scene, resolution_init=24, **extra)
+        out = field.train().render(cams, window)
+        out.rgb.sum().backward()
+        return out.rgb.detach(), [p.grad.clone() for p in field.density_grid.factors() + field.color_grid.factors()]
+
+    rgb, plain = grads()
+    rgb_near, near = grads(near_gradient=0.5)
+    assert torch.equal(rgb, rgb_near)
+    norms = [(float(a.norm()), float(b.norm())) for a, b in zip(plain, near)]
+    assert all(b < a for a, b in norms)
+    _, none = grads(near_gradient=1000.0)
+    assert all(float(g.norm()) < 1e-3 * a for g, (a, _) in zip(none, norms))
+
+
 def test_grid_gives_what_loss_terms_request_in_training_only(tiny_scene):
     """``Field.request``: the grid adds the requested per-ray measures to its training
     renders (with their gradient into the density), never to evaluation renders; the

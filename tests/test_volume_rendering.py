@@ -7,7 +7,8 @@ import math
 import pytest
 import torch
 
-from rainyscape.fields.rendering import FAR_DELTA, composite, compositing_weights, sample_deltas
+from rainyscape.fields.rendering import (FAR_DELTA, composite, compositing_weights, near_gradient_scale, sample_deltas,
+                                         scale_gradient)
 
 SIGMA, A, B = 1.7, 1.0, 2.5  # a constant-density slab [A, B)
 COLOR = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
@@ -152,3 +153,17 @@ def test_distortion_prefers_one_thin_surface_to_spread_weight():
     peaked[4] = 1.0
     spread = torch.full((10,), 0.1, dtype=torch.float64)
     assert distortion(peaked, s0, s1, ray, 1) < distortion(spread, s0, s1, ray, 1) / 5
+
+
+def test_near_gradient_scale_is_quadratic_up_to_the_reference_then_one():
+    d = torch.tensor([0.0, 0.5, 1.0, 2.0, 4.0])
+    assert torch.allclose(near_gradient_scale(d, 2.0), torch.tensor([0.0, 0.0625, 0.25, 1.0, 1.0]))
+
+
+def test_scale_gradient_keeps_values_and_scales_only_the_gradient():
+    x = torch.tensor([1.0, 2.0, 3.0], requires_grad=True)
+    scale = torch.tensor([0.0, 0.5, 1.0])
+    y = scale_gradient(x * 2.0, scale)
+    assert torch.equal(y.detach(), torch.tensor([2.0, 4.0, 6.0]))
+    y.sum().backward()
+    assert torch.allclose(x.grad, torch.tensor([0.0, 1.0, 2.0]))

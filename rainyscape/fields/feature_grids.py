@@ -26,6 +26,13 @@ from rainyscape.fields import vm_cpp
 MODES = ((0, 1, 2), (0, 2, 1), (1, 2, 0))
 
 
+def axis_sizes(resolution: int, aspect: Tensor) -> tuple[int, int, int]:
+    """Lattice points per axis: about ``resolution``^3 in all, shared in proportion to ``aspect``
+    (a box's half sizes: its texels are cubes)."""
+    ratio = aspect / aspect.prod() ** (1.0 / 3.0)
+    return tuple(max(2, int(round(resolution * float(r)))) for r in ratio)
+
+
 def resample(lattice: Tensor, size: tuple[int, ...]) -> Tensor:
     """Interpolate a (1, C, *spatial) lattice to ``size`` (spatial, in storage order)."""
     mode = "trilinear" if lattice.dim() == 5 else "bilinear"

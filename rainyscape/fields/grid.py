@@ -32,12 +32,13 @@ from rainyscape.components import Callback, ParamGroup, TrainState
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
-from rainyscape.fields.feature_grids import DenseGrid, VMTables
+from rainyscape.fields.feature_grids import DenseGrid, VMTables, axis_sizes
 from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
 from rainyscape.fields.optim_state import replace_adam_param
 from rainyscape.fields.packed import distortion
 from rainyscape.fields.ray_field import RayField
-from rainyscape.fields.rendering import FAR_DELTA, compositing_weights, sample_deltas
+from rainyscape.fields.rendering import (FAR_DELTA, compositing_weights, near_gradient_scale, sample_deltas,
+                                         scale_gradient)
 from rainyscape.fields.space import GridSpace, SampleRays
 from rainyscape.scene import SceneData, points_box
 
@@ -53,12 +54,6 @@ def growth_resolution(step: int, max_iters: int, initial: int, final: int,
     done = sum(step >= round(f * max_iters) for f in growth_at)
     level = done / len(growth_at)
     return int(round(math.exp(math.log(initial) * (1 - level) + math.log(final) * level)))
-
-
-def axis_sizes(resolution: int, extent: Tensor) -> tuple[int, int, int]:
-    """Lattice points per axis: ``resolution``^3 in all, shared in proportion to ``extent``."""
-    ratio = extent / extent.prod() ** (1.0 / 3.0)
-    return tuple(max(2, int(round(resolution * float(r)))) for r in ratio)
 
 
 def pixel_matched_resolution(extent: Tensor, width: int, height: int) -> int:
@@ -153,6 +148,9 @@ class GridField(RayField):
         weight_threshold: float = bounded(1e-4, 0.0, 1.0)  # colour is computed only where a sample's weight reaches this
         transmittance_threshold: float = bounded(1e-4, 0.0, 1.0)  # samples behind this much opacity get no gradient
         distortion: float = bounded(0.0, 0.0)  # weight of mip-NeRF 360's distortion loss (0: off)
+        # gradients of samples nearer a camera than this share of the cameras' mean distance to
+        # the scene centre scaled by (d / that)^2 against near-camera floaters (0: off)
+        near_gradient: float = bounded(0.0, 0.0)
         lr_density: float = bounded(0.1, 0.0)
         lr_color: float = bounded(0.1, 0.0)
         lr_network: float = bounded(1e-3, 0.0)
@@ -199,6 +197,8 @@ class GridField(RayField):
         self.basis = nn.Linear(self.color_grid.channels, c.feature_dim, bias=False)
         self.color_net = ColorNet(c.feature_dim, c.view_freqs, c.hidden)
         self.occupancy = OccupancyGrid(c.occupancy_resolution)
+        self._sample_counts: tuple[Tensor, int, int] | None = None  # of the last training render
+        self.near_reference = c.near_gradient * float(scene.cameras.centers.norm(dim=-1).mean())
 
     # ------------------------------------------------------------------ geometry
 
@@ -207,9 +207,16 @@ class GridField(RayField):
         return int(self.grid_resolution)
 
     def stats(self) -> dict[str, float]:
-        """The grids' resolution (cube root of the lattice size) and the occupied share of
-        the occupancy grid."""
-        return {"grid_resolution": self.resolution, "occupied_fraction": round(self.occupancy.fraction(), 4)}
+        """The grids' resolution (cube root of the lattice size), the occupied share of the
+        occupancy grid and, from the last training render, the samples a ray marched (after
+        the occupancy grid) and shaded: light spread along the rays shows as many shaded
+        samples, and they are what a step costs."""
+        out = {"grid_resolution": self.resolution, "occupied_fraction": round(self.occupancy.fraction(), 4)}
+        if self._sample_counts is not None:
+            live, shaded, rays = self._sample_counts
+            out["marched_per_ray"] = round(float(live) / rays, 2)
+            out["shaded_per_ray"] = round(shaded / rays, 2)
+        return out
 
     @property
     def layout(self) -> str:
@@ -272,21 +279,30 @@ class GridField(RayField):
         with torch.no_grad():  # march without gradients first: what light reaches each sample
             sigma = zeros.index_put(idx, self._sigma(g[idx]))
             _, transmittance = compositing_weights(sigma, deltas)
+        distance = self.space.distance(rays, t)
+        near = (near_gradient_scale(distance, self.near_reference)
+                if self.near_reference > 0 and torch.is_grad_enabled() else None)
         if torch.is_grad_enabled():
             # Only samples that light still reaches get gradients (early ray termination).
             idx = (live & (transmittance > self.config.transmittance_threshold)).nonzero(as_tuple=True)
-            sigma = zeros.index_put(idx, self._sigma(g[idx]))
+            sigma_live = self._sigma(g[idx])
+            if near is not None:
+                sigma_live = scale_gradient(sigma_live, near[idx])
+            sigma = zeros.index_put(idx, sigma_live)
         weights, _ = compositing_weights(sigma, deltas)
         # Colour only where it shows; composited sparsely, straight into the rays.
         shade = (weights.detach() >= self.config.weight_threshold).nonzero(as_tuple=True)
+        if self.training:  # read by stats() at log time only: no device sync here
+            self._sample_counts = (live.sum().detach(), len(shade[0]), len(origins))
         feats = self.basis(self.color_grid.features(g[shade]))
         rgb_samples = self.color_net(feats, directions[shade[0]])
+        if near is not None:
+            rgb_samples = scale_gradient(rgb_samples, near[shade][:, None])
         rgb = torch.zeros_like(origins).index_add(0, shade[0], weights[shade][:, None] * rgb_samples)
         acc = weights.sum(-1)
         rest = (1.0 - acc).clamp_min(0.0)
         if self.config.background == "white":
             rgb = rgb + rest[:, None]
-        distance = self.space.distance(rays, t)
         depth = ((weights * distance).sum(-1) + rest * self.space.far) * z_scale
         out = {"rgb": rgb, "depth": depth, "acc": acc}
         if self.training and (self.config.distortion > 0 or "distortion" in self.requested):

@@ -21,15 +21,9 @@ import math
 import torch
 from torch import Tensor, nn
 
-from rainyscape.fields.feature_grids import PlaneTables, VMTables
+from rainyscape.fields.feature_grids import PlaneTables, VMTables, axis_sizes
 from rainyscape.fields.hash_grid import HashGrid
 from rainyscape.fields.optim_state import replace_adam_param
-
-
-def axis_sizes(resolution: int, aspect: Tensor) -> tuple[int, int, int]:
-    """Lattice points per axis: about ``resolution``^3 in all, shared in proportion to ``aspect``."""
-    ratio = aspect / aspect.prod() ** (1.0 / 3.0)
-    return tuple(max(2, int(round(resolution * float(r)))) for r in ratio)
 
 
 class Encoding(nn.Module):

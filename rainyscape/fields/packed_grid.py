@@ -41,8 +41,8 @@ from rainyscape.components import Callback, ParamGroup, TrainState
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.fields.grid import COLOR_GROUP, DENSITY_GROUP, NETWORK_GROUP, ColorNet, GridGrowth
-from rainyscape.fields.grid_encodings import (Encoding, HashEncoding, PlanesEncoding, VMEncoding,
-                                              axis_sizes)
+from rainyscape.fields.feature_grids import axis_sizes
+from rainyscape.fields.grid_encodings import Encoding, HashEncoding, PlanesEncoding, VMEncoding
 from rainyscape.fields.marching import PackedSamples, march
 from rainyscape.fields.occupancy import EmaOccupancy
 from rainyscape.fields.packed import distortion, packed_weights, ray_starts, ray_sum

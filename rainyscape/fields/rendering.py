@@ -32,3 +32,15 @@ def compositing_weights(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
 def composite(weights: Tensor, values: Tensor) -> Tensor:
     """sum_i w_i v_i: (..., N) weights with (..., N, C) values -> (..., C)."""
     return (weights[..., None] * values).sum(-2)
+
+
+def near_gradient_scale(distance: Tensor, reference: float) -> Tensor:
+    """Per-sample gradient scale (d / reference)^2, at most 1 (Philip and Deschaintre, "Floaters
+    No More", 2023): space close to a camera is seen by few pixels of few views, so its
+    samples get outsized gradients per volume and grow floaters there."""
+    return (distance / reference).square().clamp(max=1.0)
+
+
+def scale_gradient(x: Tensor, scale: Tensor) -> Tensor:
+    """``x`` unchanged in the forward pass; its gradient multiplied by ``scale`` (broadcast)."""
+    return x.detach() + (x - x.detach()) * scale  # exactly x: x - x.detach() is 0
