@@ -280,13 +280,13 @@ class GridField(RayField):
             sigma = zeros.index_put(idx, self._sigma(g[idx]))
             _, transmittance = compositing_weights(sigma, deltas)
         distance = self.space.distance(rays, t)
-        near = (near_gradient_scale(distance, self.near_reference)
-                if self.near_reference > 0 and torch.is_grad_enabled() else None)
+        near = None  # per-sample gradient scale (field.near_gradient), in training only
         if torch.is_grad_enabled():
             # Only samples that light still reaches get gradients (early ray termination).
             idx = (live & (transmittance > self.config.transmittance_threshold)).nonzero(as_tuple=True)
             sigma_live = self._sigma(g[idx])
-            if near is not None:
+            if self.near_reference > 0:
+                near = near_gradient_scale(distance, self.near_reference)
                 sigma_live = scale_gradient(sigma_live, near[idx])
             sigma = zeros.index_put(idx, sigma_live)
         weights, _ = compositing_weights(sigma, deltas)
