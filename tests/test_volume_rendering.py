@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from rainyscape.fields.rendering import (FAR_DELTA, composite, compositing_weights, near_gradient_scale, sample_deltas,
-                                         scale_gradient)
+from rainyscape.fields.rendering import (FAR_DELTA, composite, compositing_weights, densities_until_opaque,
+                                         near_gradient_scale, sample_deltas, scale_gradient)
 
 SIGMA, A, B = 1.7, 1.0, 2.5  # a constant-density slab [A, B)
 COLOR = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
@@ -167,3 +167,33 @@ def test_scale_gradient_keeps_values_and_scales_only_the_gradient():
     assert torch.equal(y.detach(), torch.tensor([2.0, 4.0, 6.0]))
     y.sum().backward()
     assert torch.allclose(x.grad, torch.tensor([0.0, 1.0, 2.0]))
+
+
+def test_densities_until_opaque_stop_where_the_light_is_gone_and_match_the_full_march():
+    """Three rays of 100 samples: one through empty space, one into a thick wall at sample 10,
+    one with a faint haze only. Marching in chunks of 8 evaluates the wall ray only up to the
+    chunk where its transmittance falls under the threshold; every other density, and every
+    transmittance above the threshold, is that of evaluating all live samples."""
+    n = 100
+    deltas = torch.full((3, n), 0.05)
+    deltas[:, -1] = FAR_DELTA
+    full = torch.zeros(3, n)
+    full[1, 10:] = 400.0  # a wall: opaque within a sample
+    full[2, :] = 0.2  # haze: transmittance stays above 1e-4 to the last sample but one
+    live = torch.ones(3, n, dtype=torch.bool)
+    live[0, 40:60] = False  # skipped by the occupancy grid
+    calls = []
+
+    def density(rays, samples):
+        calls.append(len(rays))
+        return full[rays, samples]
+
+    sigma, evaluated = densities_until_opaque(live, deltas, density, threshold=1e-4, chunk=8)
+    assert torch.equal(evaluated[1], torch.arange(n) < 16)  # the wall's chunk [8, 16), no further
+    assert torch.equal(evaluated[0], live[0]) and evaluated[2].all()
+    assert sum(calls) == int(evaluated.sum())
+    _, t_full = compositing_weights(full * live, deltas)
+    _, t_march = compositing_weights(sigma, deltas)
+    lit = t_full > 1e-4
+    assert torch.equal(t_march[lit], t_full[lit])
+    assert not (t_march[1, 16:] > 1e-4).any()  # what was not evaluated still passes no threshold

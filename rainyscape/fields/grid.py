@@ -37,8 +37,8 @@ from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_ce
 from rainyscape.fields.optim_state import replace_adam_param
 from rainyscape.fields.packed import distortion
 from rainyscape.fields.ray_field import RayField
-from rainyscape.fields.rendering import (FAR_DELTA, compositing_weights, near_gradient_scale, sample_deltas,
-                                         scale_gradient)
+from rainyscape.fields.rendering import (FAR_DELTA, compositing_weights, densities_until_opaque,
+                                         near_gradient_scale, sample_deltas, scale_gradient)
 from rainyscape.fields.space import GridSpace, SampleRays
 from rainyscape.scene import SceneData, points_box
 
@@ -208,13 +208,14 @@ class GridField(RayField):
 
     def stats(self) -> dict[str, float]:
         """The grids' resolution (cube root of the lattice size), the occupied share of the
-        occupancy grid and, from the last training render, the samples a ray marched (after
-        the occupancy grid) and shaded: light spread along the rays shows as many shaded
-        samples, and they are what a step costs."""
+        occupancy grid and, from the last training render, the samples a ray marched (those
+        past the occupancy grid whose density was evaluated before the ray turned opaque) and
+        shaded: light spread along the rays shows as many shaded samples, and they are what a
+        step costs."""
         out = {"grid_resolution": self.resolution, "occupied_fraction": round(self.occupancy.fraction(), 4)}
         if self._sample_counts is not None:
-            live, shaded, rays = self._sample_counts
-            out["marched_per_ray"] = round(float(live) / rays, 2)
+            marched, shaded, rays = self._sample_counts
+            out["marched_per_ray"] = round(float(marched) / rays, 2)
             out["shaded_per_ray"] = round(shaded / rays, 2)
         return out
 
@@ -274,10 +275,10 @@ class GridField(RayField):
         live = valid & self.occupancy.lookup(2.0 * g)  # the occupancy grid spans [-2, 2]^3
         if self.config.background == "last-sample":
             live[:, -1] = True  # it must stay able to take the light that is left
-        idx = live.nonzero(as_tuple=True)
         zeros = torch.zeros_like(t)
         with torch.no_grad():  # march without gradients first: what light reaches each sample
-            sigma = zeros.index_put(idx, self._sigma(g[idx]))
+            sigma, evaluated = densities_until_opaque(live, deltas, lambda r, s: self._sigma(g[r, s]),
+                                                      self.config.transmittance_threshold)
             _, transmittance = compositing_weights(sigma, deltas)
         distance = self.space.distance(rays, t)
         near = None  # per-sample gradient scale (field.near_gradient), in training only
@@ -293,7 +294,7 @@ class GridField(RayField):
         # Colour only where it shows; composited sparsely, straight into the rays.
         shade = (weights.detach() >= self.config.weight_threshold).nonzero(as_tuple=True)
         if self.training:  # read by stats() at log time only: no device sync here
-            self._sample_counts = (live.sum().detach(), len(shade[0]), len(origins))
+            self._sample_counts = (evaluated.sum(), len(shade[0]), len(origins))
         feats = self.basis(self.color_grid.features(g[shade]))
         rgb_samples = self.color_net(feats, directions[shade[0]])
         if near is not None:

@@ -7,6 +7,8 @@ C = sum_i T_i alpha_i c_i, which is exact for piecewise-constant density and col
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 from torch import Tensor
 
@@ -27,6 +29,35 @@ def compositing_weights(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
     before = torch.cat([torch.zeros_like(optical[..., :1]), torch.cumsum(optical[..., :-1], -1)], -1)
     transmittance = torch.exp(-before)
     return transmittance * alpha, transmittance
+
+
+def densities_until_opaque(live: Tensor, deltas: Tensor, density: Callable[[Tensor, Tensor], Tensor],
+                           threshold: float, chunk: int = 32) -> tuple[Tensor, Tensor]:
+    """Densities (R, N) of the ``live`` samples (R, N), and which were evaluated (R, N), front
+    to back ``chunk``
+    samples at a time; ``density(rays, samples)`` gives them at index pairs. A ray is no longer
+    evaluated once its transmittance past a chunk is below ``threshold``: the samples behind
+    stay 0. Up to there the densities, so the transmittance of :func:`compositing_weights`,
+    are those of evaluating every live sample (the same sums in the same order); behind it
+    no sample passes the threshold either way. Occluded space costs nothing then: behind a
+    surface most of a ray's live samples lie in space no view has carved."""
+    sigma = torch.zeros(live.shape, dtype=deltas.dtype, device=deltas.device)
+    evaluated = torch.zeros_like(live)
+    active = torch.ones(live.shape[0], dtype=torch.bool, device=live.device)
+    for start in range(0, live.shape[1], chunk):
+        end = min(start + chunk, live.shape[1])
+        evaluated[:, start:end] = live[:, start:end] & active[:, None]
+        rays, cols = evaluated[:, start:end].nonzero(as_tuple=True)
+        if len(rays):
+            sigma[rays, cols + start] = density(rays, cols + start)
+        if end == live.shape[1]:
+            break
+        # the transmittance at sample ``end``: the prefix sum compositing_weights forms there
+        before = torch.cumsum(sigma[:, :end] * deltas[:, :end], -1)[:, -1]
+        active &= torch.exp(-before) > threshold
+        if not bool(active.any()):
+            break
+    return sigma, evaluated
 
 
 def composite(weights: Tensor, values: Tensor) -> Tensor:
