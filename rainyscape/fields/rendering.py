@@ -33,17 +33,18 @@ def compositing_weights(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
 
 def densities_until_opaque(live: Tensor, deltas: Tensor, density: Callable[[Tensor, Tensor], Tensor],
                            threshold: float, chunk: int = 32) -> tuple[Tensor, Tensor]:
-    """Densities (R, N) of the ``live`` samples (R, N), and which were evaluated (R, N), front
-    to back ``chunk``
-    samples at a time; ``density(rays, samples)`` gives them at index pairs. A ray is no longer
-    evaluated once its transmittance past a chunk is below ``threshold``: the samples behind
-    stay 0. Up to there the densities, so the transmittance of :func:`compositing_weights`,
-    are those of evaluating every live sample (the same sums in the same order); behind it
-    no sample passes the threshold either way. Occluded space costs nothing then: behind a
-    surface most of a ray's live samples lie in space no view has carved."""
+    """Densities (R, N) of the ``live`` samples (R, N), evaluated front to back ``chunk``
+    samples at a time, and which were evaluated (R, N); ``density(rays, samples)`` gives them
+    at index pairs. A ray is no longer evaluated once its transmittance past a chunk is below
+    ``threshold``: the samples behind stay 0. Up to there the densities, so the transmittance
+    of :func:`compositing_weights`, are those of evaluating every live sample (the optical
+    depth is summed sample by sample in the same order); behind it no sample passes the
+    threshold either way. Occluded space costs nothing then: behind a surface most of a ray's
+    live samples lie in space no view has carved."""
     sigma = torch.zeros(live.shape, dtype=deltas.dtype, device=deltas.device)
     evaluated = torch.zeros_like(live)
     active = torch.ones(live.shape[0], dtype=torch.bool, device=live.device)
+    before = torch.zeros(live.shape[0], dtype=deltas.dtype, device=deltas.device)  # optical depth so far
     for start in range(0, live.shape[1], chunk):
         end = min(start + chunk, live.shape[1])
         evaluated[:, start:end] = live[:, start:end] & active[:, None]
@@ -52,8 +53,8 @@ def densities_until_opaque(live: Tensor, deltas: Tensor, density: Callable[[Tens
             sigma[rays, cols + start] = density(rays, cols + start)
         if end == live.shape[1]:
             break
-        # the transmittance at sample ``end``: the prefix sum compositing_weights forms there
-        before = torch.cumsum(sigma[:, :end] * deltas[:, :end], -1)[:, -1]
+        optical = sigma[:, start:end] * deltas[:, start:end]
+        before = torch.cumsum(torch.cat([before[:, None], optical], -1), -1)[:, -1]
         active &= torch.exp(-before) > threshold
         if not bool(active.any()):
             break
