@@ -205,3 +205,28 @@ def test_rainyscape_nerf_field_gradients_keep_their_scale_across_the_phase_switc
     assert len(joint) == 4
     ratio = (sum(joint) / 4) / (sum(warmup[-2:]) / 2)
     assert 0.2 < ratio < 5, (warmup, joint)
+
+
+def test_a_cpu_trainer_flushes_denormal_numbers_to_zero(tiny_scene, tmp_path):
+    """Adam's moments of texels no ray reaches decay below float32's normal range, where
+    arithmetic takes the slow path (a 512^3 grid step twice as long): a CPU trainer makes
+    that range zero."""
+    from rainyscape.engine.device import flush_denormals
+    from rainyscape.engine.pipeline import build_pipeline
+    from rainyscape.engine.trainer import Trainer
+
+    tiny = torch.tensor([1e-30])
+    torch.set_flush_denormal(False)
+    try:
+        assert float(tiny * 1e-10) > 0  # 1e-40: a denormal, kept
+        if not flush_denormals(torch.device("cpu")):
+            pytest.skip("this CPU cannot flush denormals")
+        torch.set_flush_denormal(False)
+        cfg = config.method_config("nerf", ["trainer.max_iters=1", "trainer.eval_every=0",
+                                            "trainer.checkpoint_every=0", "trainer.progress=false"])
+        Trainer(build_pipeline(cfg, tiny_scene, torch.device("cpu")), tmp_path)
+        assert float(tiny * 1e-10) == 0.0
+        assert float(tiny * 1e-5) > 0  # normal numbers are untouched
+    finally:
+        torch.set_flush_denormal(False)
+    assert not flush_denormals(torch.device("meta"))  # not a CPU: nothing changes

@@ -75,3 +75,10 @@ def test_gradients_repeat_bit_for_bit_on_several_threads():
     for a, b in zip(first, again):
         assert torch.equal(a, b)
 
+
+def test_the_backward_runs_on_one_thread_when_its_points_are_few_for_the_table():
+    # colour table at 512^3 (786432 rows): a step's 20k shaded samples go serial, 80k parallel
+    assert vm_cpp.backward_threads(20_000, 786_432, 2) == 1
+    assert vm_cpp.backward_threads(80_000, 786_432, 2) == 2
+    assert vm_cpp.backward_threads(20_000, 196_608, 2) == 2  # the 256^3 table
+    assert vm_cpp.backward_threads(10, 100, 0) == 1

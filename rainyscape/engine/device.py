@@ -22,3 +22,17 @@ def resolve_device(name: str) -> torch.device:
     if dev.type not in ("cpu", "cuda"):
         raise ConfigError(f"trainer.device={name}: only cpu and cuda are supported")
     return dev
+
+
+def flush_denormals(device: torch.device) -> bool:
+    """Make CPU arithmetic treat numbers below float32's normal range (1.2e-38) as zero, for
+    this thread and those it starts from now on; whether the CPU allows it.
+
+    Why: Adam's moments of grid texels that rays stopped reaching decay by 0.9 and 0.999 a
+    step into that range, where every operation on them takes the slow path. On the 512^3
+    grid field the optimiser step then took 60 % of a step and the step twice as long
+    (docs/benchmarks.md, "Denormal numbers in the optimiser"). Nothing measurable is lost:
+    the moments were already on their way to zero."""
+    if device.type != "cpu":
+        return False
+    return bool(torch.set_flush_denormal(True))

@@ -24,6 +24,7 @@ from rainyscape.components import (Energy, LatentModel, LossContext, ParamGroup,
 from rainyscape.config import PhaseConfig
 from rainyscape.engine import snapshot
 from rainyscape.engine.checkpoint import checkpoint_path, load_checkpoint
+from rainyscape.engine.device import flush_denormals
 from rainyscape.engine.loss_sum import compute_losses, energy_terms
 from rainyscape.engine.phases import PhaseSchedule
 from rainyscape.engine.pipeline import Pipeline
@@ -60,6 +61,7 @@ class Trainer:
         self.folder = run_dir if isinstance(run_dir, RunFolder) else RunFolder(run_dir)
         self.run_dir = self.folder.path
         self.device = pipeline.device
+        flush_denormals(self.device)
         self.scene = pipeline.scene
         self.images = self.scene.images.to(self.device)
         self.cameras = self.scene.cameras.to(self.device)

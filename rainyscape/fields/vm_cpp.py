@@ -51,9 +51,24 @@ class _VMLookup(torch.autograd.Function):
         plane, line, points, layout = ctx.keep
         grad = grad.contiguous()
         g_plane, g_line = torch.zeros_like(plane), torch.zeros_like(line)
+        threads = backward_threads(points.shape[0], plane.shape[0], torch.get_num_threads())
         _ext.backward(layout, plane.data_ptr(), line.data_ptr(), points.data_ptr(), points.shape[0],
-                      grad.data_ptr(), g_plane.data_ptr(), g_line.data_ptr(), torch.get_num_threads())
+                      grad.data_ptr(), g_plane.data_ptr(), g_line.data_ptr(), threads)
         return g_plane, g_line, None, None
+
+
+# A backward worker past the first adds into a table-sized buffer of its own, summed at the
+# end: it pays only when the points outnumber the rows that reduction touches. Measured on 2
+# cores (docs/benchmarks.md, "Denormal numbers in the optimiser; threads in the compiled
+# backward ..."): 20k points on a 512^3 colour table (786k rows) took 80 ms on 2 threads
+# against 63 on one; 80k points, or 20k on a 256^3 table (197k rows), were faster on 2.
+ROWS_PER_POINT_SERIAL = 16
+
+
+def backward_threads(points: int, rows: int, threads: int) -> int:
+    """Threads for a backward over ``points`` into tables of ``rows`` plane rows: one when
+    the points are fewer than rows / ROWS_PER_POINT_SERIAL, else ``threads``."""
+    return 1 if points * ROWS_PER_POINT_SERIAL < rows else max(1, threads)
 
 
 def vm_lookup(plane: Tensor, line: Tensor, points: Tensor, layout: tuple[int, ...]) -> Tensor:
