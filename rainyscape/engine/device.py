@@ -25,8 +25,8 @@ def resolve_device(name: str) -> torch.device:
 
 
 def flush_denormals(device: torch.device) -> bool:
-    """Make CPU arithmetic treat numbers below float32's normal range (1.2e-38) as zero, for
-    this thread and those it starts from now on; whether the CPU allows it.
+    """Make CPU arithmetic treat numbers below float32's normal range (1.2e-38) as zero
+    (``torch.set_flush_denormal``, kept after the run); whether the CPU allows it.
 
     Why: Adam's moments of grid texels that rays stopped reaching decay by 0.9 and 0.999 a
     step into that range, where every operation on them takes the slow path. On the 512^3
