@@ -31,8 +31,8 @@ def flush_denormals(device: torch.device) -> bool:
     Why: Adam's moments of grid texels that rays stopped reaching decay by 0.9 and 0.999 a
     step into that range, where every operation on them takes the slow path. On the 512^3
     grid field the optimiser step then took 60 % of a step and the step twice as long
-    (docs/benchmarks.md, "Denormal numbers in the optimiser"). Nothing measurable is lost:
-    the moments were already on their way to zero."""
+    (docs/benchmarks.md, "Denormal numbers in the optimiser"). The grid field's figures did
+    not move; the Gaussians' round differently from there on (noise-level changes)."""
     if device.type != "cpu":
         return False
     return bool(torch.set_flush_denormal(True))
