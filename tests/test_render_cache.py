@@ -122,7 +122,7 @@ def test_a_phase_with_head_views_trains_the_head_on_whole_cached_views(tiny_scen
     assert not any(k.startswith("cached_views.") for k in _joint_terms(off.run_dir))
 
 
-def test_head_views_without_heads_is_a_config_error(tiny_scene_dir, tmp_path):
+def test_head_views_without_heads_or_a_refresh_without_head_views_is_a_config_error(tiny_scene_dir, tmp_path):
     from rainyscape import config
     from rainyscape.errors import ConfigError
     from rainyscape.workflow import train_and_evaluate
@@ -130,6 +130,10 @@ def test_head_views_without_heads_is_a_config_error(tiny_scene_dir, tmp_path):
     cfg = config.method_config("nerf", [f"data={tiny_scene_dir}", "phases.fit.head_views=1",
                                         f"trainer.output_dir={tmp_path}", "trainer.max_iters=8", *SMALL[4:]])
     with pytest.raises(ConfigError, match="head_views"):
+        train_and_evaluate(cfg)
+    cfg = config.method_config("nerf", [f"data={tiny_scene_dir}", "phases.fit.refresh_every=5",
+                                        f"trainer.output_dir={tmp_path}", "trainer.max_iters=8", *SMALL[4:]])
+    with pytest.raises(ConfigError, match="refresh_every=5.*head_views"):
         train_and_evaluate(cfg)
 
 
@@ -182,3 +186,28 @@ def test_rays_with_heads_need_whole_views(tiny_scene_dir, tmp_path):
                                                    "phases.joint.head_views=0", f"trainer.output_dir={tmp_path}"])
     with pytest.raises(ConfigError, match="head_views"):
         train_and_evaluate(cfg)
+
+
+def test_a_refresh_renders_one_training_view_whole_into_the_cache_in_turn(tiny_scene, tmp_path):
+    from rainyscape import config
+    from rainyscape.engine.pipeline import build_pipeline
+    from rainyscape.engine.trainer import Trainer
+
+    cfg = config.method_config("rainyscape-nerf", [*SMALL, *MIXED_JOINT, "phases.warmup.end=0.0",
+                                                   "phases.joint.refresh_every=2"])
+    pipeline = build_pipeline(cfg, tiny_scene, torch.device("cpu"))
+    trainer = Trainer(pipeline, tmp_path)
+    cache, pool = trainer.render_cache, trainer.train_pool
+    assert not bool(cache.known.any())
+    trainer._refresh_cache(len(pool) + 1)  # turns go round the training views
+    view = int(pool[1])
+    assert bool(cache.known[view].all()) and int(cache.known.sum()) == cache.known[view].numel()
+    assert pipeline.field.training  # the field trains on after the refresh
+    with torch.no_grad():
+        pipeline.field.eval()
+        fresh = pipeline.field.render(trainer.cameras[[view]], Window.full(trainer.cameras[[view]])).rgb
+    assert torch.allclose(cache.rgb[view].permute(2, 0, 1).float(), fresh[0], atol=2e-3)  # half precision
+    # in the joint phase, step 0 refreshes the first training view whole
+    trainer2 = Trainer(build_pipeline(cfg, tiny_scene, torch.device("cpu")), tmp_path / "steps")
+    trainer2.train_step()
+    assert bool(trainer2.render_cache.known[int(pool[0])].all())

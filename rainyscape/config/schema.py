@@ -169,6 +169,10 @@ class PhaseConfig:
     # last whole-view layers (the per-pixel terms only; needs head_views); its loss is the
     # pixel-weighted mean over the windows and the rays
     rays: int = bounded(0, 0, 1 << 20)
+    # with head_views: every this many steps one whole training view (each in turn) is
+    # rendered without gradients into the render cache, so that the heads learn against a
+    # recent background (0: the cache holds only the batches' renders, hundreds of steps old)
+    refresh_every: int = bounded(0, 0, 1 << 20)
 
 
 @dataclass

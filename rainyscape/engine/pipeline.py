@@ -77,7 +77,8 @@ def render_extras(config: PipelineConfig, field: Field, losses: dict[str, tuple[
 def check_layers(config: PipelineConfig, heads: dict[str, ImageHead],
                  losses: dict[str, tuple[LossConfig, Loss]]) -> None:
     """Every loss term must have, in each phase it acts in, the image layers it needs; a phase
-    that trains heads on whole views must have heads."""
+    that trains heads on whole views must have heads, and one that refreshes their render
+    cache must train them on whole views."""
     schedule = PhaseSchedule.of(config.phases, config.trainer.max_iters)
     for name, phase in config.phases.items():
         if schedule.length(name) == 0:
@@ -85,6 +86,10 @@ def check_layers(config: PipelineConfig, heads: dict[str, ImageHead],
         if phase.head_views and not phase.heads:
             raise ConfigError(f"phases.{name}.head_views={phase.head_views}: the phase has no heads "
                               f"to learn on whole views (set phases.{name}.heads, or head_views=0)")
+        if phase.refresh_every and not phase.head_views:
+            raise ConfigError(f"phases.{name}.refresh_every={phase.refresh_every}: it refreshes the "
+                              f"render cache that heads learn on with head_views, and the phase has "
+                              f"none (set phases.{name}.head_views >= 1, or refresh_every=0)")
         if phase.heads and phase.rays and not phase.head_views:
             raise ConfigError(f"phases.{name}.rays={phase.rays}: those rays are fitted against the "
                               f"heads' last whole-view predictions, and the phase makes none "

@@ -158,6 +158,8 @@ class Trainer:
             total = (1 - share) * total + share * ray_total
             values.update({f"rays.{k}": v for k, v in ray_values.items()})
         if phase.head_views:
+            if phase.refresh_every and self.step % phase.refresh_every == 0:
+                self._refresh_cache(self.step // phase.refresh_every)
             cached_total, cached_values = self._cached_view_losses(name, phase, heads, terms)
             total = total + cached_total
             values.update({f"cached_views.{k}": v for k, v in cached_values.items()})
@@ -204,6 +206,16 @@ class Trainer:
         layers = {head.layer: self.layer_caches[head.layer].read(view_ids, window, head) for head in heads}
         ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window)
         return compute_losses({k: v for k, v in terms.items() if not v[1].spatial}, ctx)
+
+    @torch.no_grad()
+    def _refresh_cache(self, turn: int) -> None:
+        """Render training view number ``turn`` (cyclically) whole into the render cache."""
+        view = self.train_pool[turn % len(self.train_pool)].reshape(1)
+        cameras = self.cameras[view.to(self.device)]
+        field = self.pipeline.field
+        field.eval()
+        self.render_cache.write(view, Window.full(cameras), field.render(cameras, Window.full(cameras)))
+        field.train()
 
     def _cached_view_losses(self, name: str, phase: PhaseConfig, heads: list, terms) -> tuple[Tensor, dict]:
         """The phase's loss terms on ``phase.head_views`` whole training views, with the
