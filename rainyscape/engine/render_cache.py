@@ -7,6 +7,9 @@ little rain (docs/rain.md, "The rain head on a ray field"). The cache holds, per
 colour and depth the field last rendered there (detached). Where it never rendered, the
 nearest rendered pixels stand in (:func:`fill_holes`): after a warm-up of random rays about
 half the pixels are known, and a background is smooth next to rain streaks a pixel wide.
+Those renders are hundreds of steps old (docs/rain.md, "How old is the background the rain
+head learns against"); ``phases.NAME.refresh_every`` has the trainer render whole views into
+the cache in turn.
 
 :class:`LayerCache` is the other way round: a head's last whole-view prediction, for a
 field's single rays that the head does not predict on (``phases.NAME.rays``).
