@@ -6,7 +6,8 @@ step time against the rays a step.
 
 Trains ``--method`` (default ``nerf``) on the clean views of SCENE (as ``fields_curve.py``)
 to step ``--at`` (2450 of the recipe's 3000: the last lattice), then times ``--steps`` steps
-split into their parts, and the same number of whole steps at each ray count of ``--rays``.
+split into their parts, and the same number of the trainer's whole steps at each ray count
+of ``--rays``.
 Wall times in ms, medians for the whole steps. No profiler: torch's profiler charged a
 fresh gradient's page faults to ``fill_`` at several times their cost in a whole run
 (docs/benchmarks.md, "The grid field on an AMD EPYC").
@@ -24,7 +25,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fields import build  # noqa: E402  (benchmarks/fields.py)
+from fields import build, timed_steps  # noqa: E402  (benchmarks/fields.py)
 from fields_curve import scene_overrides  # noqa: E402
 
 
@@ -60,14 +61,15 @@ def main(argv=None) -> int:
     _, trainer = build(args.method, overrides, Path(args.out))
     while trainer.step < args.at:
         trainer.train_step()
-    rays = trainer.batch_sizes[trainer.phases.at(trainer.step)[0]]
+    phase = trainer.phases.at(trainer.step)[0]
+    rays = trainer.batch_sizes[phase]
     parts = [split_step(trainer, rays) for _ in range(args.steps)]
     result = {"data": args.data, "at": args.at, "threads": torch.get_num_threads(), "rays": rays,
               "split_ms": {k: round(1000 * statistics.median(p_[k] for p_ in parts), 1) for k in parts[0]},
               "stats": trainer.pipeline.field.stats(), "step_ms_by_rays": {}}
     for count in (int(r) for r in args.rays.split(",")):
-        times = [sum(split_step(trainer, count).values()) for _ in range(args.steps)]
-        result["step_ms_by_rays"][count] = round(1000 * statistics.median(times), 1)
+        trainer.batch_sizes[phase] = count  # the trainer's own steps, callbacks included
+        result["step_ms_by_rays"][count] = round(1000 * statistics.median(timed_steps(trainer, args.steps)), 1)
     print(json.dumps(result))
     return 0
 

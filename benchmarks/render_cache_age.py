@@ -26,6 +26,7 @@ from fields import build  # noqa: E402  (benchmarks/fields.py)
 
 def main(argv=None) -> int:
     from rainyscape.cameras import Window
+    from rainyscape.eval.views import render_view
     from rainyscape.imaging.metrics import psnr
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -51,20 +52,15 @@ def main(argv=None) -> int:
 
     cache.write = recording
     views = torch.tensor(trainer.scene.train_indices)
-    field, report = trainer.pipeline.field, {"data": args.data, "overrides": args.overrides, "marks": {}}
+    report = {"data": args.data, "overrides": args.overrides, "marks": {}}
     for mark in sorted(int(m) for m in args.marks.split(",")):
         while trainer.step < min(mark, cfg.trainer.max_iters):
             trainer.train_step()
         steps = written[views]
         known = steps >= 0
-        scores = []
-        with torch.no_grad():
-            field.eval()
-            for v in views[::3].tolist():
-                cameras = trainer.cameras[[v]]
-                fresh = field.render(cameras, Window.full(cameras)).rgb
-                scores.append(float(psnr(cache.read(torch.tensor([v]), Window.full(cameras)).rgb, fresh)))
-            field.train()
+        scores = [float(psnr(cache.read(torch.tensor([v]), Window.full(trainer.cameras[[v]])).rgb,
+                             render_view(trainer.pipeline, v).rgb)) for v in views[::3].tolist()]
+        trainer.pipeline.field.train()  # render_view leaves it in eval mode
         report["marks"][trainer.step] = {
             "never_rendered": round(float((~known).float().mean()), 3),
             "median_age_steps": int((trainer.step - steps[known]).median()) if bool(known.any()) else None,

@@ -192,6 +192,7 @@ def test_a_refresh_renders_one_training_view_whole_into_the_cache_in_turn(tiny_s
     from rainyscape import config
     from rainyscape.engine.pipeline import build_pipeline
     from rainyscape.engine.trainer import Trainer
+    from rainyscape.eval.views import render_view
 
     cfg = config.method_config("rainyscape-nerf", [*SMALL, *MIXED_JOINT, "phases.warmup.end=0.0",
                                                    "phases.joint.refresh_every=2"])
@@ -203,9 +204,7 @@ def test_a_refresh_renders_one_training_view_whole_into_the_cache_in_turn(tiny_s
     view = int(pool[1])
     assert bool(cache.known[view].all()) and int(cache.known.sum()) == cache.known[view].numel()
     assert pipeline.field.training  # the field trains on after the refresh
-    with torch.no_grad():
-        pipeline.field.eval()
-        fresh = pipeline.field.render(trainer.cameras[[view]], Window.full(trainer.cameras[[view]])).rgb
+    fresh = render_view(pipeline, view).rgb
     assert torch.allclose(cache.rgb[view].permute(2, 0, 1).float(), fresh[0], atol=2e-3)  # half precision
     # in the joint phase, step 0 refreshes the first training view whole
     trainer2 = Trainer(build_pipeline(cfg, tiny_scene, torch.device("cpu")), tmp_path / "steps")

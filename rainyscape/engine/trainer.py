@@ -209,12 +209,14 @@ class Trainer:
 
     @torch.no_grad()
     def _refresh_cache(self, turn: int) -> None:
-        """Render training view number ``turn`` (cyclically) whole into the render cache."""
+        """Render training view number ``turn`` (cyclically) whole into the render cache, the
+        field in eval mode as in evaluation (eval/views.py sits above the engine)."""
         view = self.train_pool[turn % len(self.train_pool)].reshape(1)
         cameras = self.cameras[view.to(self.device)]
+        window = Window.full(cameras)
         field = self.pipeline.field
         field.eval()
-        self.render_cache.write(view, Window.full(cameras), field.render(cameras, Window.full(cameras)))
+        self.render_cache.write(view, window, field.render(cameras, window))
         field.train()
 
     def _cached_view_losses(self, name: str, phase: PhaseConfig, heads: list, terms) -> tuple[Tensor, dict]:
