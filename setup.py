@@ -1,17 +1,19 @@
-"""Build of the compiled parts: the CPU rasteriser of the Gaussians and the grid field's
-vector-matrix lookup (C++17, std::thread, CPython C API only, so no torch is needed to build
-them). Package metadata lives in pyproject.toml.
+"""Build of the compiled parts: the CPU rasteriser of the Gaussians, the grid field's
+vector-matrix lookup and its first pass (C++17, std::thread, CPython C API only, so no torch
+is needed to build them). Package metadata lives in pyproject.toml.
 
 The extensions are optional: without a working C++ compiler the install still succeeds (with
-a warning from setuptools) and the torch code is used; tests/test_rasterize_cpp.py and
-tests/test_vm_cpp.py fail when a compiler is present but an extension did not build.
+a warning from setuptools) and the torch code is used; tests/test_rasterize_cpp.py,
+tests/test_vm_cpp.py and tests/test_grid_march.py fail when a compiler is present but an
+extension did not build.
 """
 
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
 CSRC = "rainyscape/fields/gaussians/csrc"
-SHARED = "rainyscape/csrc"  # the worker pool and Python glue both modules use
+FIELDS = "rainyscape/fields/csrc"
+SHARED = "rainyscape/csrc"  # the worker pool and Python glue all modules use
 
 
 class BuildExt(build_ext):
@@ -43,8 +45,15 @@ setup(
         optional=True,
     ), Extension(
         "rainyscape.fields._vm_cpp",
-        sources=["rainyscape/fields/csrc/vm_lookup.cpp"],
-        depends=[f"{SHARED}/parallel.h", f"{SHARED}/py_release.h"],
+        sources=[f"{FIELDS}/vm_lookup.cpp"],
+        depends=[f"{FIELDS}/vm_taps.h", f"{SHARED}/parallel.h", f"{SHARED}/py_release.h"],
+        include_dirs=[SHARED],
+        language="c++",
+        optional=True,
+    ), Extension(
+        "rainyscape.fields._march_cpp",
+        sources=[f"{FIELDS}/march.cpp"],
+        depends=[f"{FIELDS}/vm_taps.h", f"{SHARED}/parallel.h", f"{SHARED}/py_release.h"],
         include_dirs=[SHARED],
         language="c++",
         optional=True,

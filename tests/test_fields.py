@@ -8,12 +8,13 @@ import pytest
 import torch
 
 from rainyscape import config
-from rainyscape.cameras import Window
+from rainyscape.cameras import Window, pixel_rays
 from rainyscape.components import TrainState
 from rainyscape.errors import ConfigError
-from rainyscape.fields.grid import GridField, growth_resolution, ray_distortion
+from rainyscape.fields.grid import GridField, growth_resolution
 from rainyscape.fields.ndc import ndc_near
 from rainyscape.fields.nerf_mlp import NerfMLP, NerfMLPField
+from rainyscape.fields.packed import distortion, packed_weights
 from rainyscape.scene import faces_forward, points_box
 from rainyscape.workflow import wants_sparse_points
 
@@ -170,22 +171,27 @@ def test_every_grid_parameter_group_gets_gradients(tiny_scene):
         assert sum(float(p.grad.abs().sum()) for p in group.params) > 0, group.name
 
 
-def test_grid_distortion_is_the_double_sum_over_sample_ranks():
-    """Dense per-ray samples: the loss is mip-NeRF 360's double sum with each real sample one
-    interval of width 1/N in rank order; padding (not real, no weight) takes no room."""
-    w = torch.tensor([[0.1, 0.0, 0.5, 0.2], [0.0, 0.6, 0.0, 0.3]])
-    valid = torch.tensor([[True, False, True, True], [True, True, True, True]])
-    n = w.shape[1]
-    for r in range(2):
-        ws = w[r][valid[r]]
-        mid = (torch.arange(len(ws)) + 0.5) / n
-        want = (ws[:, None] * ws[None] * (mid[:, None] - mid[None]).abs()).sum() + (ws ** 2).sum() / (3 * n)
-        assert torch.isclose(ray_distortion(w, valid)[r], want, atol=1e-6)
+def test_grid_distortion_is_the_double_sum_over_sample_ranks(tiny_scene):
+    """The grid field's distortion is mip-NeRF 360's double sum with each of a ray's real
+    samples one interval of width 1/N in rank order (N the ray's slots): its live samples'
+    ranks skip the empty and the padded slots, which carry no weight and take no room."""
+    field = _field("grid", tiny_scene, resolution_init=24, distortion=0.01)
+    cams, window = _full(tiny_scene, [0])
+    ys, xs = window.pixel_grid()
+    world = pixel_rays(cams, xs, ys)
+    rays = field.space.sample_rays(world.origins.reshape(-1, 3)[:64], world.directions.reshape(-1, 3)[:64])
+    live = field.train()._march(rays)
+    weights = packed_weights(field._sigma(live.g), live.delta, live.ray, 64)[0].detach()
+    got = distortion(weights, live.rank / live.slots, (live.rank + 1) / live.slots, live.ray, 64)
+    for r in range(0, 64, 9):
+        ws, mid = weights[live.ray == r], (live.rank[live.ray == r] + 0.5) / live.slots
+        want = (ws[:, None] * ws[None] * (mid[:, None] - mid[None]).abs()).sum() + (ws ** 2).sum() / (3 * live.slots)
+        assert torch.isclose(got[r], want, atol=1e-6)
     # weight gathered at one sample costs less than the same weight spread over the ray
-    spread, gathered = torch.full((1, 8), 0.1), torch.zeros(1, 8)
-    gathered[0, 3] = 0.8
-    ones = torch.ones(1, 8, dtype=torch.bool)
-    assert ray_distortion(gathered, ones) < ray_distortion(spread, ones)
+    ray, s0 = torch.zeros(8, dtype=torch.long), torch.arange(8) / 8
+    spread, gathered = torch.full((8,), 0.1), torch.zeros(8)
+    gathered[3] = 0.8
+    assert distortion(gathered, s0, s0 + 1 / 8, ray, 1) < distortion(spread, s0, s0 + 1 / 8, ray, 1)
 
 
 def test_grid_distortion_loss_in_training_only_and_it_reaches_the_density(tiny_scene):

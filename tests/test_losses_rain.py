@@ -240,16 +240,18 @@ def test_front_weight_is_the_weight_in_front_of_the_median_depth():
     """A ray with a floater (0.2 at distance 1) before its surface (0.7 at 5, 0.1 at 6): the
     median depth is the surface's, the floater's weight alone is in front, and only it gets
     the gradient. Without a floater nothing is in front."""
-    from rainyscape.fields.grid import front_weight
+    from rainyscape.fields.packed import front_weight
 
-    weights = torch.tensor([[0.2, 0.0, 0.7, 0.1], [0.0, 0.0, 0.9, 0.1]], requires_grad=True)
-    distance = torch.tensor([[1.0, 3.0, 5.0, 6.0], [1.0, 3.0, 5.0, 6.0]])
-    front = front_weight(weights, distance)
-    assert front.tolist() == pytest.approx([0.2, 0.0])
+    # packed samples: rows of ray 0, then of ray 1; a third ray has none
+    weights = torch.tensor([0.2, 0.0, 0.7, 0.1, 0.0, 0.0, 0.9, 0.1], requires_grad=True)
+    distance = torch.tensor([1.0, 3.0, 5.0, 6.0] * 2)
+    ray = torch.tensor([0, 0, 0, 0, 1, 1, 1, 1])
+    front = front_weight(weights, distance, ray, 3)
+    assert front.tolist() == pytest.approx([0.2, 0.0, 0.0])
     front.sum().backward()
-    assert weights.grad.tolist() == [[1.0, 1.0, 0.0, 0.0], [1.0, 1.0, 0.0, 0.0]]
+    assert weights.grad.tolist() == [1.0, 1.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0]
     # a floater holding most of the light is the surface as far as the median can tell
-    assert front_weight(torch.tensor([[0.6, 0.0, 0.3, 0.1]]), distance[:1]).item() == 0.0
+    assert front_weight(torch.tensor([0.6, 0.0, 0.3, 0.1]), distance[:4], ray[:4], 1).item() == 0.0
 
 
 def test_floater_rays_weighs_each_ray_by_the_rain_at_its_pixel():

@@ -31,11 +31,13 @@ from torch import Tensor, nn
 from rainyscape.components import Callback, ParamGroup, TrainState
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
+from rainyscape.fields import grid_march
 from rainyscape.fields.encoding import encoded_dim, positional_encoding
 from rainyscape.fields.feature_grids import DenseGrid, VMTables, axis_sizes
+from rainyscape.fields.grid_march import LiveSamples
 from rainyscape.fields.occupancy import OccupancyGrid, cell_centers, occupied_cells
 from rainyscape.fields.optim_state import replace_adam_param
-from rainyscape.fields.packed import distortion
+from rainyscape.fields.packed import distortion, front_weight, packed_weights, ray_starts, ray_sum
 from rainyscape.fields.ray_field import RayField
 from rainyscape.fields.rendering import (FAR_DELTA, compositing_weights, densities_until_opaque,
                                          near_gradient_scale, sample_deltas, scale_gradient)
@@ -62,29 +64,6 @@ def pixel_matched_resolution(extent: Tensor, width: int, height: int) -> int:
     an axis of half size h needs h x pixels texels, and axis_sizes shares the lattice in
     proportion to the half sizes."""
     return int(round(max(width, height) * float(extent.prod()) ** (1.0 / 3.0)))
-
-
-def ray_distortion(weights: Tensor, valid: Tensor) -> Tensor:
-    """mip-NeRF 360's distortion loss per ray (R,) of densely laid out samples (R, N), over
-    the samples' rank among the ray's real ones divided by N: the grid's samples are evenly
-    spaced in its sampling space (voxels, then the contracted shell), so their rank is that
-    space's coordinate, and padding (zero-length intervals, zero weight) takes no room."""
-    r, n = weights.shape
-    width = valid.to(weights.dtype) / n
-    s1 = torch.cumsum(width, -1)
-    ray = torch.arange(r, device=weights.device).repeat_interleave(n)
-    return distortion(weights.reshape(-1), (s1 - width).reshape(-1), s1.reshape(-1), ray, r)
-
-
-def front_weight(weights: Tensor, distance: Tensor, margin: float = 0.1) -> Tensor:
-    """Per ray (R,): the weight of its samples nearer than ``1 - margin`` times its median
-    depth (where half its weight is reached; a floater short of half does not move it), with
-    the gradient into every weight. Samples (R, N) sorted by ``distance`` along each ray."""
-    with torch.no_grad():
-        cum = torch.cumsum(weights, -1)
-        half = (cum < 0.5 * cum[:, -1:]).sum(-1, keepdim=True).clamp_max(weights.shape[1] - 1)
-        median = distance.gather(-1, half)
-    return (weights * (distance < (1.0 - margin) * median)).sum(-1)
 
 
 class ColorNet(nn.Module):
@@ -239,21 +218,30 @@ class GridField(RayField):
         zero outside the grid cube (NDC and box layouts)."""
         return self.space.density_at(points, self._sigma)
 
+    def _sample_plan(self, rays: SampleRays) -> tuple[Tensor, int, Tensor, int]:
+        """How rays are sampled: the t step of the linear part (R,), its slots (the longest
+        ray's), each ray's jitter (R, 1) (random in training, 0.5 else) and the far part's
+        slots (0: one last sample at t_b instead)."""
+        step = self.step_size() / rays.length  # t moves |d| sampling-space units per unit
+        n_lin = max(1, math.ceil(float(((rays.t_b - rays.t_a) / step).max())))
+        shape = (rays.t_a.shape[0], 1)
+        device = rays.t_a.device
+        jitter = (torch.rand(shape, device=device) if self.training
+                  else torch.full(shape, 0.5, device=device))
+        n_far = (max(1, math.ceil((self.resolution - 1) / 4.0 / self.config.step_ratio))
+                 if self.layout == "contract" else 0)
+        return step, n_lin, jitter, n_far
+
     def _samples(self, rays: SampleRays) -> tuple[Tensor, Tensor]:
         """Sample parameters t (R, N) and which are real (R, N): evenly spaced on the linear
         part [t_a, t_b]; then, contracted, evenly in inverse distance out to t_far; else one
         last sample at t_b that takes the light that is left."""
-        step = self.step_size() / rays.length  # t moves |d| sampling-space units per unit
+        step, n_lin, jitter, n_far = self._sample_plan(rays)
         device = rays.t_a.device
-        n_lin = max(1, math.ceil(float(((rays.t_b - rays.t_a) / step).max())))
-        shape = (rays.t_a.shape[0], 1)
-        jitter = (torch.rand(shape, device=device) if self.training
-                  else torch.full(shape, 0.5, device=device))
         t_lin = rays.t_a[:, None] + (torch.arange(n_lin, device=device) + jitter) * step[:, None]
         valid = t_lin < rays.t_b[:, None]
-        if self.layout == "contract":
+        if n_far:
             # Past the box, samples go evenly in inverse distance: evenly in the shell.
-            n_far = max(1, math.ceil((self.resolution - 1) / 4.0 / self.config.step_ratio))
             u = (torch.arange(n_far, device=device) + jitter) / n_far
             t_end = 1.0 / ((1.0 - u) / rays.t_b[:, None] + u / rays.t_far[:, None])
         else:
@@ -264,52 +252,87 @@ class GridField(RayField):
         t_lin = torch.where(valid, t_lin, t_end[:, :1])
         return torch.cat([t_lin, t_end], -1), torch.cat([valid, torch.ones_like(t_end, dtype=torch.bool)], -1)
 
-    # ----------------------------------------------------------------- rendering
+    def _last_delta(self) -> float:
+        return FAR_DELTA if self.config.background == "last-sample" else 0.0
 
-    def render_rays(self, origins: Tensor, directions: Tensor, z_scale: Tensor) -> dict[str, Tensor]:
-        rays = self.space.sample_rays(origins, directions)
+    @torch.no_grad()
+    def _march_dense(self, rays: SampleRays) -> LiveSamples:
+        """The live samples, from (rays x slots) tensors (any device; the reference for the
+        compiled marcher)."""
         t, valid = self._samples(rays)
-        last = FAR_DELTA if self.config.background == "last-sample" else 0.0
-        deltas = (sample_deltas(t, last=last) * rays.length[:, None]).clamp_min(0.0)
+        deltas = (sample_deltas(t, last=self._last_delta()) * rays.length[:, None]).clamp_min(0.0)
         g = self.space.to_grid(rays.origins[:, None] + t[..., None] * rays.directions[:, None])
         live = valid & self.occupancy.lookup(2.0 * g)  # the occupancy grid spans [-2, 2]^3
         if self.config.background == "last-sample":
             live[:, -1] = True  # it must stay able to take the light that is left
-        zeros = torch.zeros_like(t)
-        with torch.no_grad():  # march without gradients first: what light reaches each sample
-            sigma, evaluated = densities_until_opaque(live, deltas, lambda r, s: self._sigma(g[r, s]),
-                                                      self.config.transmittance_threshold)
-            _, transmittance = compositing_weights(sigma, deltas)
-        distance = self.space.distance(rays, t)
-        near = None  # per-sample gradient scale (field.near_gradient), in training only
+        threshold = self.config.transmittance_threshold
+        sigma, evaluated = densities_until_opaque(live, deltas, lambda r, s: self._sigma(g[r, s]), threshold)
+        _, transmittance = compositing_weights(sigma, deltas)
+        idx = (live & (transmittance > threshold)).nonzero(as_tuple=True)
+        rank = torch.cumsum(valid, -1) - 1
+        return LiveSamples(idx[0], t[idx], deltas[idx], g[idx], sigma[idx], rank[idx],
+                           t.shape[1], evaluated.sum())
+
+    def _compiled(self, origins: Tensor) -> bool:
+        """Whether the compiled first pass can run: a vector-matrix density, on the CPU."""
+        grid = self.density_grid
+        return isinstance(grid, VMTables) and grid_march.usable(grid.plane, origins)
+
+    def _march(self, rays: SampleRays) -> LiveSamples:
+        """The samples light reaches (occupied, in front of where the ray turns opaque): the
+        compiled marcher where it can run, else the dense one."""
+        if not self._compiled(rays.origins):
+            return self._march_dense(rays)
+        step, n_lin, jitter, n_far = self._sample_plan(rays)
+        c, grid = self.config, self.density_grid
+        return grid_march.march(grid.plane, grid.line, grid.layout(), self.occupancy.occupied,
+                                rays.origins, rays.directions, rays.t_a, rays.t_b, rays.t_far,
+                                step, jitter[:, 0], rays.length, n_lin, n_far, self.space.inner,
+                                self._last_delta(), c.background == "last-sample",
+                                c.density_scale, c.density_shift, c.transmittance_threshold)
+
+    # ----------------------------------------------------------------- rendering
+
+    def render_rays(self, origins: Tensor, directions: Tensor, z_scale: Tensor) -> dict[str, Tensor]:
+        rays = self.space.sample_rays(origins, directions)
+        live = self._march(rays)
+        n = len(origins)
+        starts = ray_starts(live.ray, n)
+        distance = self.space.distance(rays, live.t, live.ray)
+        sigma, near = live.sigma, None  # near: per-sample gradient scale (field.near_gradient)
         if torch.is_grad_enabled():
-            # Only samples that light still reaches get gradients (early ray termination).
-            idx = (live & (transmittance > self.config.transmittance_threshold)).nonzero(as_tuple=True)
-            sigma_live = self._sigma(g[idx])
+            # Only the samples light still reaches get gradients (early ray termination).
+            grid = self.density_grid
+            sigma = (grid_march.pass_density(grid.plane, grid.line, grid.layout(), live,
+                                             self.config.density_scale)
+                     if self._compiled(origins) else self._sigma(live.g))
             if self.near_reference > 0:
                 near = near_gradient_scale(distance, self.near_reference)
-                sigma_live = scale_gradient(sigma_live, near[idx])
-            sigma = zeros.index_put(idx, sigma_live)
-        weights, _ = compositing_weights(sigma, deltas)
+                sigma = scale_gradient(sigma, near)
+        weights, _, _ = packed_weights(sigma, live.delta, live.ray, n, starts)
         # Colour only where it shows; composited sparsely, straight into the rays.
-        shade = (weights.detach() >= self.config.weight_threshold).nonzero(as_tuple=True)
+        shade = (weights.detach() >= self.config.weight_threshold).nonzero()[:, 0]
         if self.training:  # read by stats() at log time only: no device sync here
-            self._sample_counts = (evaluated.sum(), len(shade[0]), len(origins))
-        feats = self.basis(self.color_grid.features(g[shade]))
-        rgb_samples = self.color_net(feats, directions[shade[0]])
+            self._sample_counts = (live.evaluated, len(shade), n)
+        ray = live.ray[shade]
+        feats = self.basis(self.color_grid.features(live.g[shade]))
+        rgb_samples = self.color_net(feats, directions[ray])
         if near is not None:
             rgb_samples = scale_gradient(rgb_samples, near[shade][:, None])
-        rgb = torch.zeros_like(origins).index_add(0, shade[0], weights[shade][:, None] * rgb_samples)
-        acc = weights.sum(-1)
+        rgb = torch.zeros_like(origins).index_add(0, ray, weights[shade][:, None] * rgb_samples)
+        acc = ray_sum(weights, live.ray, n)
         rest = (1.0 - acc).clamp_min(0.0)
         if self.config.background == "white":
             rgb = rgb + rest[:, None]
-        depth = ((weights * distance).sum(-1) + rest * self.space.far) * z_scale
+        depth = (ray_sum(weights * distance, live.ray, n) + rest * self.space.far) * z_scale
         out = {"rgb": rgb, "depth": depth, "acc": acc}
         if self.training and (self.config.distortion > 0 or "distortion" in self.requested):
-            out["distortion"] = ray_distortion(weights, valid)
+            # the samples are evenly spaced in the sampling space (voxels, then the contracted
+            # shell), so a sample's rank among the ray's real ones is that space's coordinate
+            s0 = live.rank.to(weights.dtype) / live.slots
+            out["distortion"] = distortion(weights, s0, s0 + 1.0 / live.slots, live.ray, n, starts)
         if self.training and "front_weight" in self.requested:
-            out["front_weight"] = front_weight(weights, distance)
+            out["front_weight"] = front_weight(weights, distance, live.ray, n, starts)
         return out
 
     # -------------------------------------------------------------- optimisation

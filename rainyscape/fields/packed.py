@@ -38,7 +38,12 @@ def packed_weights(sigma: Tensor, deltas: Tensor, ray: Tensor, n_rays: int,
     behind each ray's last sample (R,)."""
     starts = ray_starts(ray, n_rays) if starts is None else starts
     optical = sigma * deltas
-    transmittance = torch.exp(-exclusive_cumsum(optical, starts)).to(sigma.dtype)
+    # A ray's last row never lies in front of one of its own: left out of the running sum,
+    # its interval (NeRF's last one is 1e10 long) does not swamp the rays after it.
+    last = torch.ones_like(ray, dtype=torch.bool)
+    last[:-1] = ray[1:] != ray[:-1]
+    before = exclusive_cumsum(torch.where(last, torch.zeros_like(optical), optical), starts)
+    transmittance = torch.exp(-before).to(sigma.dtype)
     weights = transmittance * (1.0 - torch.exp(-optical))
     left = torch.exp(-ray_sum(optical.double(), ray, n_rays)).to(sigma.dtype)
     return weights, transmittance, left
@@ -59,3 +64,18 @@ def distortion(weights: Tensor, s0: Tensor, s1: Tensor, ray: Tensor, n_rays: int
     pairs = 2.0 * weights * (mid * w_before - wm_before)
     self_term = weights ** 2 * (s1 - s0) / 3.0
     return ray_sum(pairs + self_term, ray, n_rays)
+
+
+def front_weight(weights: Tensor, distance: Tensor, ray: Tensor, n_rays: int,
+                 starts: Tensor | None = None, margin: float = 0.1) -> Tensor:
+    """Per ray (R,): the weight of its samples nearer than ``1 - margin`` times its median
+    depth (the first sample where half its weight is reached; a floater short of half does
+    not move it), with the gradient into every weight. Rows sorted by ray, then distance."""
+    starts = ray_starts(ray, n_rays) if starts is None else starts
+    with torch.no_grad():
+        w = weights.double()
+        cum = exclusive_cumsum(w, starts) + w
+        below = (cum < 0.5 * ray_sum(w, ray, n_rays)[ray]).long()
+        last = starts + torch.bincount(ray, minlength=n_rays)[ray] - 1
+        median = distance[torch.minimum(starts + ray_sum(below, ray, n_rays)[ray], last)]
+    return ray_sum(weights * (distance < (1.0 - margin) * median), ray, n_rays)

@@ -178,9 +178,13 @@ class GridSpace(nn.Module):
             scale = scale * self.inner * shell_stretch(g, self.inner)
         return scale * torch.ones_like(g[..., 0])
 
-    def distance(self, rays: SampleRays, t: Tensor) -> Tensor:
-        """World distance along the ray at parameters t (R, ...) (for depth)."""
+    def distance(self, rays: SampleRays, t: Tensor, ray: Tensor | None = None) -> Tensor:
+        """World distance along the ray at parameters t (for depth): t (R, ...) of every ray,
+        or t (S,) of packed samples of the rays ``ray`` (S,)."""
         if self.layout != "ndc":
             return t
+        shift, dz = rays.ndc_shift, rays.ndc_dz
+        if ray is not None:
+            return shift[ray] + ndc_to_distance(t, self.near, dz[ray])
         shape = (-1,) + (1,) * (t.dim() - 1)
-        return rays.ndc_shift.view(shape) + ndc_to_distance(t, self.near, rays.ndc_dz.view(shape))
+        return shift.view(shape) + ndc_to_distance(t, self.near, dz.view(shape))

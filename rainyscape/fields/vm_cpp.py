@@ -49,12 +49,19 @@ class _VMLookup(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: Tensor):
         plane, line, points, layout = ctx.keep
-        grad = grad.contiguous()
-        g_plane, g_line = torch.zeros_like(plane), torch.zeros_like(line)
-        threads = backward_threads(points.shape[0], plane.shape[0], torch.get_num_threads())
-        _ext.backward(layout, plane.data_ptr(), line.data_ptr(), points.data_ptr(), points.shape[0],
-                      grad.data_ptr(), g_plane.data_ptr(), g_line.data_ptr(), threads)
-        return g_plane, g_line, None, None
+        return (*vm_backward(plane, line, points, grad, layout), None, None)
+
+
+def vm_backward(plane: Tensor, line: Tensor, points: Tensor, grad: Tensor,
+                layout: tuple[int, ...]) -> tuple[Tensor, Tensor]:
+    """The tables' gradients (plane, line) from the features' gradient ``grad`` (P, 3 C) at
+    ``points`` (P, 3) (contiguous float32 CPU tables and points)."""
+    grad = grad.contiguous()
+    g_plane, g_line = torch.zeros_like(plane), torch.zeros_like(line)
+    threads = backward_threads(points.shape[0], plane.shape[0], torch.get_num_threads())
+    _ext.backward(layout, plane.data_ptr(), line.data_ptr(), points.data_ptr(), points.shape[0],
+                  grad.data_ptr(), g_plane.data_ptr(), g_line.data_ptr(), threads)
+    return g_plane, g_line
 
 
 # A backward worker past the first adds into a table-sized buffer of its own, summed at the
