@@ -108,3 +108,19 @@ def test_empty_space_costs_no_samples(tiny_scene):
     live = field.eval()._march(rays)
     n_rays = rays.origins.shape[0]
     assert torch.equal(live.ray, torch.arange(n_rays)) and bool((live.delta > 1e9).all())
+
+
+@needs_cpp
+def test_compiled_pass_is_the_same_on_any_number_of_threads(tiny_scene):
+    field = _structured_field(tiny_scene).eval()
+    rays = _rays(field, tiny_scene, [0, 1, 2])
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = field._march(rays)
+        torch.set_num_threads(3)
+        three = field._march(rays)
+    finally:
+        torch.set_num_threads(threads)
+    for name in ("ray", "rank", "t", "delta", "g", "sigma"):
+        assert torch.equal(getattr(one, name), getattr(three, name)), name

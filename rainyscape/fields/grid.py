@@ -10,8 +10,9 @@ resolutions in proportion to its extent so voxels are about cubic.
 
 Samples are evenly spaced (in voxels) along the linear part of a ray (to where it leaves the
 content's box; all of it in NDC), then, when contracted, evenly in inverse distance out to
-``far``. An occupancy grid skips empty space; colour is computed only where a sample's weight
-matters. Light that is left at the last sample ends there (as in NeRF): far content and sky
+``far``. An occupancy grid skips empty space; a first pass without gradients keeps the samples
+light reaches (compiled on a CPU: grid_march.py), and colour is computed only where a
+sample's weight matters. Light that is left at the last sample ends there (as in NeRF): far content and sky
 live on the shell (the NDC box's far face).
 
 The grids start coarse and grow on a schedule: an explicit grid has no spectral bias of its
