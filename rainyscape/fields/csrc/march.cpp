@@ -90,12 +90,10 @@ void march_ray(int64_t i, const Rays& R, const Settings& S, const Layout& L, con
   // The ray's real samples in order: the linear ones before t_b, then the end ones (padding
   // slots in between have zero length and are never live: skipped).
   ts.clear();
-  int64_t n_valid = 0;
   for (int64_t k = 0; k < S.n_lin; ++k) {
     const float t = t_a + (static_cast<float>(k) + jitter) * step;
     if (!(t < t_b)) break;  // t grows with k
     ts.push_back(t);
-    ++n_valid;
   }
   if (S.contract) {
     const float t_far = R.t_far[i];
