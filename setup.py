@@ -34,29 +34,20 @@ class BuildExt(build_ext):
         super().build_extensions()
 
 
+def extension(name: str, sources: list[str], depends: list[str]) -> Extension:
+    """An optional C++ module (the install goes on without it) that includes the shared
+    worker pool and Python glue."""
+    return Extension(name, sources=sources, depends=depends + [f"{SHARED}/parallel.h", f"{SHARED}/py_release.h"],
+                     include_dirs=[SHARED], language="c++", optional=True)
+
+
 setup(
-    ext_modules=[Extension(
-        "rainyscape.fields.gaussians._rasterize_cpp",
-        sources=[f"{CSRC}/module.cpp", f"{CSRC}/kernel.cpp", f"{CSRC}/projection.cpp"],
-        depends=[f"{CSRC}/kernel.h", f"{CSRC}/kernel_common.h", f"{CSRC}/composite_impl.h",
-                 f"{SHARED}/parallel.h", f"{SHARED}/py_release.h"],
-        include_dirs=[SHARED],
-        language="c++",
-        optional=True,
-    ), Extension(
-        "rainyscape.fields._vm_cpp",
-        sources=[f"{FIELDS}/vm_lookup.cpp"],
-        depends=[f"{FIELDS}/vm_taps.h", f"{SHARED}/parallel.h", f"{SHARED}/py_release.h"],
-        include_dirs=[SHARED],
-        language="c++",
-        optional=True,
-    ), Extension(
-        "rainyscape.fields._march_cpp",
-        sources=[f"{FIELDS}/march.cpp"],
-        depends=[f"{FIELDS}/vm_taps.h", f"{SHARED}/parallel.h", f"{SHARED}/py_release.h"],
-        include_dirs=[SHARED],
-        language="c++",
-        optional=True,
-    )],
+    ext_modules=[
+        extension("rainyscape.fields.gaussians._rasterize_cpp",
+                  [f"{CSRC}/module.cpp", f"{CSRC}/kernel.cpp", f"{CSRC}/projection.cpp"],
+                  [f"{CSRC}/kernel.h", f"{CSRC}/kernel_common.h", f"{CSRC}/composite_impl.h"]),
+        extension("rainyscape.fields._vm_cpp", [f"{FIELDS}/vm_lookup.cpp"], [f"{FIELDS}/vm_taps.h"]),
+        extension("rainyscape.fields._march_cpp", [f"{FIELDS}/march.cpp"], [f"{FIELDS}/vm_taps.h"]),
+    ],
     cmdclass={"build_ext": BuildExt},
 )

@@ -16,13 +16,9 @@ import torch
 from torch import Tensor
 
 from rainyscape.fields import vm_cpp
+from rainyscape.fields.compiled import load
 
-try:
-    from rainyscape.fields import _march_cpp as _ext
-    _IMPORT_ERROR = ""
-except ImportError as err:  # not built: no compiler at install time, or a stale install
-    _ext = None
-    _IMPORT_ERROR = str(err) or type(err).__name__
+_ext, _IMPORT_ERROR = load("rainyscape.fields._march_cpp")
 
 
 @dataclass

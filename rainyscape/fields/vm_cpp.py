@@ -11,12 +11,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-try:
-    from rainyscape.fields import _vm_cpp as _ext
-    _IMPORT_ERROR = ""
-except ImportError as err:  # not built: no compiler at install time, or a stale install
-    _ext = None
-    _IMPORT_ERROR = str(err) or type(err).__name__
+from rainyscape.fields.compiled import load
+
+_ext, _IMPORT_ERROR = load("rainyscape.fields._vm_cpp")
 
 
 def cpp_available() -> bool:

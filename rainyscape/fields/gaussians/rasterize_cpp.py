@@ -18,15 +18,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from rainyscape.fields.compiled import load
 from rainyscape.fields.gaussians.projection import Projection
 from rainyscape.fields.gaussians.rasterize_torch import AbsGrad
 
-try:
-    from rainyscape.fields.gaussians import _rasterize_cpp as _ext
-    _IMPORT_ERROR = ""
-except ImportError as err:  # not built: no compiler at install time, or a stale install
-    _ext = None
-    _IMPORT_ERROR = str(err) or type(err).__name__
+_ext, _IMPORT_ERROR = load("rainyscape.fields.gaussians._rasterize_cpp")
 
 TILE_SIZE = 16  # fixed in csrc/kernel.h (kTile)
 
