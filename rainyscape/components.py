@@ -28,7 +28,10 @@ class ParamGroup:
 
     lr(step) = lr * lr_decay ** (step / span), span = ``lr_decay_steps`` or, when that is 0,
     the whole run (so ``lr_decay`` is then the final lr over the initial one, as 3DGS's
-    position lr). A phase may scale or fix the field's lr (``PhaseConfig``).
+    position lr). After ``anneal_at`` of the run the lr is further multiplied by
+    ``anneal_to ** progress`` (progress 0 to 1 over the rest of the run): a late anneal that
+    lets the last steps settle without slowing the run's middle. A phase may scale or fix the
+    field's lr (``PhaseConfig``).
     """
 
     name: str
@@ -38,12 +41,17 @@ class ParamGroup:
     lr_decay_steps: int = 0
     betas: tuple[float, float] = (0.9, 0.999)
     eps: float = 1e-8
+    anneal_at: float = 1.0
+    anneal_to: float = 1.0
 
     def lr_at(self, step: int, total_steps: int) -> float:
-        if self.lr_decay == 1.0:
-            return self.lr
-        span = self.lr_decay_steps or total_steps
-        return self.lr * self.lr_decay ** (step / span)
+        lr = self.lr
+        if self.lr_decay != 1.0:
+            lr *= self.lr_decay ** (step / (self.lr_decay_steps or total_steps))
+        start = self.anneal_at * total_steps
+        if self.anneal_to != 1.0 and step > start:
+            lr *= self.anneal_to ** ((step - start) / max(total_steps - start, 1))
+        return lr
 
 
 @dataclass

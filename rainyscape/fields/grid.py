@@ -138,6 +138,11 @@ class GridField(RayField):
         # they still had most of the views to fit (1.2-1.4 dB lost on the cpu set's yard and plaza)
         lr_decay: float = bounded(0.5, above=0.0)
         lr_decay_steps: int = bounded(3000, 0)
+        # the last 5 % of the run anneal every rate a further 10x: the 512 lattice arrives at
+        # 80 %, so an earlier anneal starves it (crossroad: 0.8 lost 0.3 dB); +0.08 dB on the
+        # cpu set, +0.12 on fern (docs/benchmarks.md, "A late anneal")
+        anneal_at: float = bounded(0.95, 0.0, 1.0)  # fraction of the run where the anneal starts
+        anneal_to: float = bounded(0.1, above=0.0)  # its factor at the run's end (1: none)
         chunk: int = bounded(8192, 1)  # rays per chunk when rendering without gradients
         train_chunk: int = bounded(0, 0)  # rays per gradient-checkpointed chunk in training (0: one pass)
 
@@ -347,7 +352,8 @@ class GridField(RayField):
             # A tiny eps (as instant-ngp): grid gradients are tiny where rays barely reach,
             # and Adam's default 1e-8 would freeze those voxels instead of normalising them.
             return ParamGroup(name, params, lr=lr, lr_decay=c.lr_decay,
-                              lr_decay_steps=c.lr_decay_steps, eps=1e-15)
+                              lr_decay_steps=c.lr_decay_steps, eps=1e-15,
+                              anneal_at=c.anneal_at, anneal_to=c.anneal_to)
 
         return [group(DENSITY_GROUP, self.density_grid.factors(), c.lr_density),
                 group(COLOR_GROUP, color, c.lr_color),
