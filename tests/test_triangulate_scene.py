@@ -145,6 +145,21 @@ def test_ground_truth_depth_starts_nothing_unless_asked(tiny_scene_dir):
     assert scene.depths is not None  # still there for evaluation
     explicit = MayaCsvParser(MayaCsvConfig(points_from_depth=True)).parse(tiny_scene_dir)
     assert explicit.points is not None and "ground-truth depth" in explicit.points_source
+    # the ray bounds too: any posed capture's without points, not the true depth's
+    radius = float(scene.cameras.centers.norm(dim=-1).max())
+    assert (scene.near, scene.far) == pytest.approx((0.05 * radius, 2.5 * radius))
+    assert (explicit.near, explicit.far) != pytest.approx((scene.near, scene.far))
+
+
+def test_the_points_cache_tells_scene_bounds_apart(fern_dir, cache):
+    from rainyscape.process.scene_points import with_sparse_points
+
+    scene = parse_fern(fern_dir)
+    with_sparse_points(scene)
+    # the bounds choose the view pairs, so other bounds are another triangulation
+    other = with_sparse_points(dataclasses.replace(scene, far=scene.far * 2))
+    assert other.metadata["sparse_points"]["cached"] is False
+    assert len(list(cache.glob("*.npz"))) == 2
 
 
 def test_rs_bench_refuses_ground_truth_depth_points():

@@ -35,14 +35,16 @@ def points_cache_dir() -> Path:
     return cache_root() / "sparse-points"
 
 
-def cache_key(images: np.ndarray, cameras: Cameras, options: TriangulationOptions) -> str:
-    """Hash of what the triangulation sees: the images, their cameras and the options."""
+def cache_key(images: np.ndarray, cameras: Cameras, near: float, far: float,
+              options: TriangulationOptions) -> str:
+    """Hash of what the triangulation sees: the images, their cameras, the scene's bounds (they
+    choose the view pairs) and the options."""
     h = hashlib.sha256(f"rainyscape-sparse-points-v{CACHE_VERSION}".encode())
     h.update(np.ascontiguousarray(images, np.uint8).tobytes())
     h.update(str(np.asarray(images).shape).encode())
     for t in (cameras.c2w, cameras.fx, cameras.fy, cameras.cx, cameras.cy):
         h.update(t.detach().cpu().to(torch.float64).numpy().tobytes())
-    h.update(f"{cameras.width}x{cameras.height}".encode())
+    h.update(f"{cameras.width}x{cameras.height} {float(near)!r} {float(far)!r}".encode())
     opts = {k: v for k, v in dataclasses.asdict(options).items() if k != "num_threads"}  # threads change no result
     h.update(json.dumps(opts, sort_keys=True).encode())
     return h.hexdigest()[:24]
@@ -84,7 +86,7 @@ def training_view_points(scene: SceneData, options: TriangulationOptions | None 
     views = list(scene.train_indices)
     images = scene.images[views].cpu().numpy()
     cameras = scene.cameras[views].to("cpu")
-    key = cache_key(images, cameras, options)
+    key = cache_key(images, cameras, scene.near, scene.far, options)
     if use_cache:
         found = load_cached(key)
         if found is not None:
