@@ -190,7 +190,7 @@ class MayaCsvParser(DataParser):
         near = far = None
         # The depth maps are ground truth: only the explicit study option reads bounds from
         # them; otherwise near / far are those of any posed capture without points (a tight
-        # near bound from the true depth hid 1.8 dB of near-camera floaters from `nerf`'s
+        # near bound from the true depth hid 1.5 dB of near-camera floaters from `nerf`'s
         # held-out views: docs/benchmarks.md, "Ray bounds without the ground-truth depth")
         if depths is not None and cfg.points_from_depth:
             bounds = depth_bounds(depths)
