@@ -164,7 +164,8 @@ def cell_config(cell: Cell):
         raise ConfigError(f"{cell.key.strip('/')}: {exc}") from None
     if getattr(cfg.dataparser.options, "points_from_depth", False):
         raise ConfigError(f"{cell.key.strip('/') or 'rs-bench'}: dataparser.points_from_depth=true starts "
-                          "3DGS from the simulator's ground-truth depth, which no capture has; a "
+                          "3DGS from the simulator's ground-truth depth and takes the ray bounds from it, which "
+                          "no capture has; a "
                           "benchmark never uses it (its 3DGS rows start from points triangulated "
                           "from the training views)")
     return cfg

@@ -140,7 +140,7 @@ class GridField(RayField):
         lr_decay_steps: int = bounded(3000, 0)
         # the last 5 % of the run anneal every rate a further 10x: the 512 lattice arrives at
         # 80 %, so an earlier anneal starves it (crossroad: 0.8 lost 0.3 dB); +0.08 dB on the
-        # cpu set, +0.12 on fern (docs/benchmarks.md, "A late anneal")
+        # cpu set, +0.12 on fern (docs/benchmarks.md, "A late anneal of the grid field's rates")
         anneal_at: float = bounded(0.95, 0.0, 1.0)  # fraction of the run where the anneal starts
         anneal_to: float = bounded(0.1, above=0.0)  # its factor at the run's end (1: none)
         chunk: int = bounded(8192, 1)  # rays per chunk when rendering without gradients
