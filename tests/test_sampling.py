@@ -107,7 +107,9 @@ def test_positional_encoding_layout():
 
 from rainyscape.fields.marching import march  # noqa: E402
 from rainyscape.fields.occupancy import EmaOccupancy  # noqa: E402
-from rainyscape.fields.space import contract_to_cube, shell_stretch  # noqa: E402
+from rainyscape.fields.space import GridSpace, contract_to_cube, reach_half_size, shell_stretch  # noqa: E402
+
+from _scenes import forward_facing_scene  # noqa: E402
 
 
 def _rays(n=64, seed=0):
@@ -168,6 +170,23 @@ def test_contract_to_cube_gives_the_box_its_share_and_infinity_the_border():
           - contract_to_cube(torch.tensor([[1.5 - eps, 0, 0]]), inner)[0, 0]) / (2 * eps)
     gr = contract_to_cube(torch.stack([r, torch.zeros(1), torch.zeros(1)], -1), inner)
     assert shell_stretch(gr, inner).item() == pytest.approx(1.0 / dg.item(), rel=1e-3)
+
+
+def test_rays_of_the_contracted_layout_end_where_the_shell_reaches_its_share():
+    inner, reach = 0.5, 0.9
+    r = reach_half_size(inner, reach)
+    assert contract_to_cube(torch.tensor([[r, 0.3, -0.2]]), inner)[0, 0].item() == pytest.approx(reach)
+    scene = forward_facing_scene()  # far 8: the scene's own bound, which the reach replaces
+    space = GridSpace(scene, "contract", inner, shell_reach=reach)
+    o = torch.tensor([[0.0, 0.0, 0.0], [1.0, -0.5, 0.2], [0.0, 0.0, 0.0]])
+    d = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0], [0.3, 0.2, 1.0], [1.0, 1.0, 0.0]]), dim=-1)
+    rays = space.sample_rays(o, d)
+    ends = space.to_grid(rays.origins + rays.t_far[:, None] * rays.directions)
+    assert torch.allclose(ends.abs().amax(-1), torch.full((3,), reach), atol=1e-5)
+    assert torch.all(rays.t_far > scene.far)  # the scene's far (8 units) would cut the shell short
+    assert torch.all(rays.t_b <= rays.t_far)
+    plain = GridSpace(scene, "contract", inner).sample_rays(o, d)
+    assert torch.all(plain.t_far == scene.far)
 
 
 def test_ema_occupancy_keeps_surfaces_and_lets_emptied_cells_fade():

@@ -121,6 +121,12 @@ class GridField(RayField):
         # sky live on the outer shell; a learned constant would rather explain the commonest
         # surface colour (a grey road) and drain its density.
         background: Literal["last-sample", "black", "white"] = "last-sample"
+        # contract: a ray ends where its contracted coordinate reaches this share of the cube
+        # (0.98: 25 box half-sizes out, beyond which everything to infinity is the last 5
+        # texels of a 512 lattice); the cameras' reach as a far bound (0: the scene's far) cut
+        # off distant content and cost 2.0 dB held out on the cpu set (docs/benchmarks.md,
+        # "Where a contracted ray ends")
+        shell_reach: float = bounded(0.98, 0.0, 0.999)
         occupancy_resolution: int = bounded(64, 2)
         occupancy_from: float = bounded(0.2, 0.0, 1.0)  # fraction of the run before the first occupancy update
         occupancy_every: int = bounded(25, 1)  # steps between updates
@@ -166,7 +172,8 @@ class GridField(RayField):
                                   f"({scene.points_source}); use field.box=scene")
             box = points_box(scene.points)
         layout = c.layout if c.layout != "auto" else ("ndc" if scene.forward_facing else "contract")
-        self.space = GridSpace(scene, layout, inner=0.5, box_scale=c.box_scale, box=box)
+        self.space = GridSpace(scene, layout, inner=0.5, box_scale=c.box_scale, box=box,
+                               shell_reach=c.shell_reach or None)
         self.final_resolution = c.resolution_final
         if layout == "ndc":
             # NDC texels keep their pixel footprint at every depth: finer than the pixels,
@@ -330,7 +337,7 @@ class GridField(RayField):
         rest = (1.0 - acc).clamp_min(0.0)
         if self.config.background == "white":
             rgb = rgb + rest[:, None]
-        depth = (ray_sum(weights * distance, live.ray, n) + rest * self.space.far) * z_scale
+        depth = (ray_sum(weights * distance, live.ray, n) + rest * self.space.end_distance(rays)) * z_scale
         out = {"rgb": rgb, "depth": depth, "acc": acc}
         if self.training and (self.config.distortion > 0 or "distortion" in self.requested):
             # the samples are evenly spaced in the sampling space (voxels, then the contracted

@@ -34,6 +34,12 @@ from rainyscape.scene import SceneData
 LAYOUTS = ("box", "contract", "ndc")
 
 
+def reach_half_size(inner: float, reach: float) -> float:
+    """The half size (box units) of the cube that ``contract_to_cube`` maps to the cube of half
+    size ``reach`` (inner < reach < 1): solves inner + (1 - inner)(1 - 1/r) = reach."""
+    return (1.0 - inner) / (1.0 - reach)
+
+
 def contract_to_cube(q: Tensor, inner: float) -> Tensor:
     """Box coordinates (..., 3) -> grid coordinates in [-1, 1]: the unit cube to [-inner, inner],
     the rest of space to the shell, x -> (inner + (1 - inner)(1 - 1/r)) x / r with r = |x|_inf."""
@@ -68,15 +74,21 @@ class GridSpace(nn.Module):
     """The layout of one scene (see the module docstring); all maps are pure tensor maths."""
 
     def __init__(self, scene: SceneData, layout: str, inner: float = 0.5, box_scale: float = 1.0,
-                 box: Tensor | None = None):
+                 box: Tensor | None = None, shell_reach: float | None = None):
         """``box`` (2, 3): the content's bounds for ``box`` and ``contract`` (default: the
-        scene's box)."""
+        scene's box). ``shell_reach`` (``contract``): a ray ends where it reaches this
+        contracted radius of the grid cube, instead of at the scene's ``far``."""
         super().__init__()
         if layout not in LAYOUTS:
             raise ValueError(f"layout must be one of {LAYOUTS}, got {layout}")
         self.layout = layout
         self.inner = float(inner) if layout == "contract" else 1.0
         self.near, self.far = float(scene.near), float(scene.far)
+        self.reach_half = None
+        if layout == "contract" and shell_reach is not None:
+            if not self.inner < shell_reach < 1.0:
+                raise ValueError(f"shell_reach must be in ({self.inner}, 1), got {shell_reach}")
+            self.reach_half = reach_half_size(self.inner, shell_reach)
         train = scene.train_indices or list(range(len(scene.cameras)))
         cams = scene.cameras[train]
         frame = average_pose(cams.c2w.float())
@@ -134,15 +146,18 @@ class GridSpace(nn.Module):
             return SampleRays(o, d, t_a, t_b, torch.ones_like(t_a), length, d_ref[:, 2], shift)
         o, d = (origins - self.box_center) / self.box_half, directions / self.box_half
         entry, exit_ = ray_box_intersection(o, d, self._unit_box(o))
-        t_a, t_b = entry.clamp(self.near, self.far), exit_.clamp(self.near, self.far)
+        far = torch.full_like(entry, self.far)
+        if self.reach_half is not None:  # where the ray reaches the contracted radius shell_reach
+            far = ray_box_intersection(o, d, self.reach_half * self._unit_box(o))[1].clamp_min(self.near)
+        t_a, t_b = entry.clamp_min(self.near).minimum(far), exit_.clamp_min(self.near).minimum(far)
         if self.layout == "contract":
             # Everything from the near plane is scene: the linear part starts there (content
             # between a camera and the box lives in the shell too) and runs to the box exit;
             # a ray that misses the box starts its far part at its closest approach to it.
-            closest = (-(o * d).sum(-1) / (d * d).sum(-1)).clamp(self.near, self.far)
+            closest = (-(o * d).sum(-1) / (d * d).sum(-1)).clamp_min(self.near).minimum(far)
             t_b = torch.where(t_b > t_a, t_b, closest)
             t_a = torch.full_like(t_a, self.near)
-        return SampleRays(o, d, t_a, t_b, torch.full_like(t_a, self.far), torch.ones_like(t_a))
+        return SampleRays(o, d, t_a, t_b, far, torch.ones_like(t_a))
 
     @staticmethod
     def _unit_box(like: Tensor) -> Tensor:
@@ -177,6 +192,11 @@ class GridSpace(nn.Module):
         if self.layout == "contract":
             scale = scale * self.inner * shell_stretch(g, self.inner)
         return scale * torch.ones_like(g[..., 0])
+
+    def end_distance(self, rays: SampleRays) -> Tensor:
+        """World distance (R,) where each ray ends (the depth of the light that is left): its
+        ``t_far``, or the scene's far for ``ndc`` (whose rays end at infinity)."""
+        return torch.full_like(rays.t_far, self.far) if self.layout == "ndc" else rays.t_far
 
     def distance(self, rays: SampleRays, t: Tensor, ray: Tensor | None = None) -> Tensor:
         """World distance along the ray at parameters t (for depth): t (R, ...) of every ray,
