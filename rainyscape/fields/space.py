@@ -14,7 +14,9 @@ Three layouts, chosen by the kind of capture:
 In every layout a ray is a straight line q(t) = o + t d of the *sampling space* (box
 coordinates, or NDC) with a linear part [t_a, t_b]: its stretch inside the box (``box``,
 ``ndc``), or from the near plane to where it leaves the box (``contract``), which adds the far
-part [t_b, far] beyond it, which the marcher samples evenly in inverse distance. t is a world
+part [t_b, t_far] beyond it, which the marcher samples evenly in inverse distance; t_far is
+the scene's far, or (``shell_reach``) where the ray's contracted point reaches that share of
+the cube, so that the far part covers the shell whatever the cameras' reach. t is a world
 distance (``box``, ``contract``) or the NDC parameter s in [0, 1] (``ndc``); quadrature uses
 the interval lengths in those units (NDC lengths as NeRF's LLFF mode does).
 """
