@@ -39,12 +39,14 @@ def with_scene(cfg: PipelineConfig) -> PipelineConfig:
 def wants_sparse_points(cfg: PipelineConfig, forward_facing: bool = False) -> bool:
     """Whether the run's field needs the scene's sparse points: it starts from them (the
     Gaussian field's ``init`` is ``auto`` or ``points``; ``random`` or ``frustum`` do not), or
-    bounds its grids by them (the grid fields' ``box=points``, and their NDC layout, whose near
-    plane sits in front of the nearest points; ``auto`` is NDC on forward-facing scenes)."""
+    bounds its grids by them (the grid fields' ``box`` ``points`` or ``auto``, and their NDC
+    layout, whose near plane sits in front of the nearest points; ``auto`` is NDC on
+    forward-facing scenes)."""
     options = cfg.field.options
     layout = getattr(options, "layout", None)
     ndc = layout == "ndc" or (layout == "auto" and forward_facing)
-    return getattr(options, "init", None) in ("auto", "points") or getattr(options, "box", None) == "points" or ndc
+    by_points = ("auto", "points")
+    return getattr(options, "init", None) in by_points or getattr(options, "box", None) in by_points or ndc
 
 
 def complete_scene(cfg: PipelineConfig, scene: SceneData) -> SceneData:
@@ -60,8 +62,6 @@ def complete_scene(cfg: PipelineConfig, scene: SceneData) -> SceneData:
     from rainyscape.process.scene_points import with_sparse_points
     from rainyscape.process.triangulate import TriangulationOptions
 
-    print(f"sparse points: {scene.name} has none; triangulating them from its "
-          f"{len(scene.train_indices)} training views (pycolmap, known poses) ...", file=sys.stderr)
     try:
         return with_sparse_points(scene, TriangulationOptions(num_threads=torch.get_num_threads()))
     except (RuntimeError, ValueError, OSError) as exc:  # a failed SfM step must not stop training

@@ -280,12 +280,19 @@ def test_points_box_bounds_the_grids_by_the_sparse_points(tiny_scene):
     assert (field.space.box_half < (tiny_scene.scene_box[1] - tiny_scene.scene_box[0]) / 2).all()
     with pytest.raises(ConfigError, match="field.box=points"):
         _field("grid", dataclasses.replace(tiny_scene, points=None), box="points")
+    # auto (the default): the points' box when there are points, else the scene's
+    auto = _field("grid", dataclasses.replace(tiny_scene, points=points))
+    assert torch.allclose(auto.space.box_half, field.space.box_half)
+    bare = _field("grid", dataclasses.replace(tiny_scene, points=None))
+    assert torch.allclose(bare.space.box_half, (tiny_scene.scene_box[1] - tiny_scene.scene_box[0]) / 2)
     # rs-train, rs-eval, rs-render and rs-export triangulate points for it when a scene has none
     assert wants_sparse_points(config.method_config("nerf", ["field.box=points"]))
-    assert not wants_sparse_points(config.method_config("nerf"))
+    assert wants_sparse_points(config.method_config("nerf"))
+    assert not wants_sparse_points(config.method_config("nerf", ["field.box=scene"]))
     # ... and for the NDC layout (auto: on forward-facing captures), whose near plane they set
-    assert wants_sparse_points(config.method_config("nerf"), forward_facing=True)
-    assert not wants_sparse_points(config.method_config("nerf", ["field.layout=contract"]), forward_facing=True)
+    assert wants_sparse_points(config.method_config("nerf", ["field.box=scene"]), forward_facing=True)
+    assert not wants_sparse_points(config.method_config("nerf", ["field.layout=contract", "field.box=scene"]),
+                                   forward_facing=True)
 
 
 def test_points_box_keeps_the_bulk_of_the_points_not_the_far_ones():

@@ -13,6 +13,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import sys
 import tempfile
 from pathlib import Path
 
@@ -91,6 +92,10 @@ def training_view_points(scene: SceneData, options: TriangulationOptions | None 
         found = load_cached(key)
         if found is not None:
             return found
+    # said only when it runs (a cached result is instant), so that a command's own error
+    # stays its only line
+    print(f"sparse points: {scene.name} has none; triangulating them from its {len(views)} "
+          "training views (pycolmap, known poses) ...", file=sys.stderr)
     result = triangulate_views(images, cameras, scene.near, scene.far, options)
     if use_cache:
         save_cached(key, result)
