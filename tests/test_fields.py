@@ -280,6 +280,8 @@ def test_points_box_bounds_the_grids_by_the_sparse_points(tiny_scene):
     assert (field.space.box_half < (tiny_scene.scene_box[1] - tiny_scene.scene_box[0]) / 2).all()
     with pytest.raises(ConfigError, match="field.box=points"):
         _field("grid", dataclasses.replace(tiny_scene, points=None), box="points")
+    with pytest.raises(ConfigError, match="field.shell_reach"):  # inside the box's share: no shell
+        _field("grid", tiny_scene, shell_reach=0.3)
     # auto (the default): the points' box when there are points, else the scene's
     auto = _field("grid", dataclasses.replace(tiny_scene, points=points))
     assert torch.allclose(auto.space.box_half, field.space.box_half)

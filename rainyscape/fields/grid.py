@@ -81,6 +81,9 @@ class ColorNet(nn.Module):
         return torch.sigmoid(self.mlp(x))
 
 
+CONTRACT_INNER = 0.5  # the grid cube's share given to the box in the contracted layout
+
+
 class GridField(RayField):
     """Fast field: explicit density + factorised colour grids, tiny MLP, coarse-to-fine growth."""
 
@@ -164,6 +167,9 @@ class GridField(RayField):
             raise ConfigError(f"field.growth_at: fractions of the run in [0, 1], got {c.growth_at}")
         if c.step_ratio <= 0 or c.box_scale <= 0:
             raise ConfigError("field.step_ratio and field.box_scale must be > 0")
+        if c.shell_reach and not CONTRACT_INNER < c.shell_reach < 1.0:
+            raise ConfigError(f"field.shell_reach: a share of the grid cube beyond the box's "
+                              f"{CONTRACT_INNER} (or 0: the scene's far), got {c.shell_reach}")
         if not 0 < scene.near < scene.far:
             raise ConfigError(f"scene {scene.name}: need 0 < near < far, got {scene.near}, {scene.far}")
         self.eval_chunk, self.train_chunk = c.chunk, c.train_chunk
@@ -175,7 +181,7 @@ class GridField(RayField):
         if c.box != "scene" and has_points:
             box = points_box(scene.points)
         layout = c.layout if c.layout != "auto" else ("ndc" if scene.forward_facing else "contract")
-        self.space = GridSpace(scene, layout, inner=0.5, box_scale=c.box_scale, box=box,
+        self.space = GridSpace(scene, layout, inner=CONTRACT_INNER, box_scale=c.box_scale, box=box,
                                shell_reach=c.shell_reach or None)
         self.final_resolution = c.resolution_final
         if layout == "ndc":
