@@ -82,3 +82,29 @@ def test_the_backward_runs_on_one_thread_when_its_points_are_few_for_the_table()
     assert vm_cpp.backward_threads(80_000, 786_432, 2) == 2
     assert vm_cpp.backward_threads(20_000, 196_608, 2) == 2  # the 256^3 table
     assert vm_cpp.backward_threads(10, 100, 0) == 1
+
+
+@needs_cpp
+def test_gradients_accumulate_in_a_buffer_the_tables_keep_between_steps():
+    tables = VMTables(4, (9, 7, 5))
+    points = torch.rand(500, 3) * 2 - 1
+    weights = torch.randn(500, 12)
+    first = _features_and_grads(tables, points, weights, compiled=True)
+    buffer = tables.plane.grad
+    # a second step after zero_grad(set_to_none): the same gradient, in the same storage
+    again = _features_and_grads(tables, points, weights, compiled=True)
+    assert tables.plane.grad is buffer
+    for a, b in zip(first, again):
+        assert torch.equal(a, b)
+    # two backward passes before the step add up, as autograd's own accumulation does
+    tables.zero_grad(set_to_none=True)
+    for _ in range(2):
+        (tables.features(points) * weights).sum().backward()
+    torch.testing.assert_close(tables.plane.grad, 2 * first[1])
+    torch.testing.assert_close(tables.line.grad, 2 * first[2])
+    # a table that is not a leaf (scaled here) still gets its gradient through autograd
+    tables.zero_grad(set_to_none=True)
+    plane = tables.plane * 2.0
+    feats = vm_cpp.vm_lookup(plane, tables.line, points, tables.layout())
+    (feats * weights).sum().backward()
+    assert tables.plane.grad.abs().sum() > 0

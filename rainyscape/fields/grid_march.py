@@ -96,6 +96,7 @@ class _PassDensity(torch.autograd.Function):
     def forward(ctx, plane: Tensor, line: Tensor, live: LiveSamples, layout: tuple, scale: float) -> Tensor:
         ctx.keep = (plane.detach().contiguous(), line.detach().contiguous(), live.g.contiguous(),
                     live.sigma, layout, scale)
+        ctx.tables = (plane, line)
         return live.sigma.clone()
 
     @staticmethod
@@ -103,7 +104,8 @@ class _PassDensity(torch.autograd.Function):
         plane, line, points, sigma, layout, scale = ctx.keep
         d_x = grad * scale * -torch.expm1(-sigma / scale)
         d_features = d_x[:, None].expand(-1, 3 * layout[0]).contiguous()
-        return (*vm_cpp.vm_backward(plane, line, points, d_features, layout), None, None, None)
+        return (*vm_cpp.tables_backward(ctx.tables, plane, line, points, d_features, layout),
+                None, None, None)
 
 
 def pass_density(plane: Tensor, line: Tensor, layout: tuple[int, ...], live: LiveSamples,

@@ -4,6 +4,12 @@
 Same maths as the torch path (bilinear plane taps times linear line taps, aligned corners,
 coordinates clamped to [-1, 1]); gradients go to the two tables, not to the points (nor do
 they on the torch path: the fields sample at fixed points). Threads: ``torch.get_num_threads()``.
+
+A leaf table's gradient is added straight into its ``.grad``, made (when None) from a buffer
+the table keeps between steps: a fresh table-sized gradient each step cost more than the
+backward itself (page faults: a 512^3 colour table's 75 MB took 59 ms to allocate zeroed,
+5 ms to zero again; docs/benchmarks.md, "The tables' gradients kept between steps"). So the
+tables' gradients reach ``.backward()``, not ``torch.autograd.grad``.
 """
 
 from __future__ import annotations
@@ -41,20 +47,47 @@ class _VMLookup(torch.autograd.Function):
         _ext.forward(layout, plane_c.data_ptr(), line_c.data_ptr(), points_c.data_ptr(),
                      points_c.shape[0], out.data_ptr(), torch.get_num_threads())
         ctx.keep = (plane_c, line_c, points_c, layout)
+        ctx.tables = (plane, line)
         return out
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        plane, line, points, layout = ctx.keep
-        return (*vm_backward(plane, line, points, grad, layout), None, None)
+        return (*tables_backward(ctx.tables, *ctx.keep[:3], grad, ctx.keep[3]), None, None)
 
 
-def vm_backward(plane: Tensor, line: Tensor, points: Tensor, grad: Tensor,
-                layout: tuple[int, ...]) -> tuple[Tensor, Tensor]:
+def kept_grad(table: Tensor) -> Tensor:
+    """``table.grad``; when None, the buffer the table keeps between steps, zeroed."""
+    if table.grad is None:
+        buf = getattr(table, "_kept_grad", None)
+        if buf is None or buf.shape != table.shape:
+            buf = torch.zeros_like(table)
+            table._kept_grad = buf
+        else:
+            buf.zero_()
+        table.grad = buf
+    return table.grad
+
+
+def tables_backward(tables: tuple[Tensor, Tensor], plane: Tensor, line: Tensor, points: Tensor,
+                    grad: Tensor, layout: tuple[int, ...]) -> tuple[Tensor | None, Tensor | None]:
+    """What an autograd backward returns for the tables (plane, line) from the features'
+    gradient ``grad``: None for leaf tables, whose gradients go straight into their ``.grad``,
+    else the gradients themselves. ``plane``, ``line``, ``points``: contiguous float32 copies."""
+    if all(t.is_leaf and t.requires_grad for t in tables):
+        grads = [kept_grad(t) for t in tables]
+        if all(g.is_contiguous() and g.dtype == torch.float32 for g in grads):
+            vm_backward(plane, line, points, grad, layout, into=grads)
+            return None, None
+    return vm_backward(plane, line, points, grad, layout)
+
+
+def vm_backward(plane: Tensor, line: Tensor, points: Tensor, grad: Tensor, layout: tuple[int, ...],
+                into: list[Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """The tables' gradients (plane, line) from the features' gradient ``grad`` (P, 3 C) at
-    ``points`` (P, 3) (contiguous float32 CPU tables and points)."""
+    ``points`` (P, 3) (contiguous float32 CPU tables and points), added into ``into`` (two
+    contiguous tensors shaped as the tables) or into zeros."""
     grad = grad.contiguous()
-    g_plane, g_line = torch.zeros_like(plane), torch.zeros_like(line)
+    g_plane, g_line = into if into is not None else (torch.zeros_like(plane), torch.zeros_like(line))
     threads = backward_threads(points.shape[0], plane.shape[0], torch.get_num_threads())
     _ext.backward(layout, plane.data_ptr(), line.data_ptr(), points.data_ptr(), points.shape[0],
                   grad.data_ptr(), g_plane.data_ptr(), g_line.data_ptr(), threads)
