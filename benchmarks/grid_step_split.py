@@ -1,11 +1,11 @@
 """Where a late step of a ray field's training goes: render, backward and optimiser, and the
 step time against the rays a step.
 
-    OMP_NUM_THREADS=1 python benchmarks/grid_step_split.py --data SCENE [--at 2450] [--steps 40] \
+    OMP_NUM_THREADS=1 python benchmarks/grid_step_split.py --data SCENE [--at STEP] [--steps 40] \
         [--rays 512,1024,2048] [key=value ...]
 
 Trains ``--method`` (default ``nerf``) on the clean views of SCENE (as ``fields_curve.py``)
-to step ``--at`` (2450 of the recipe's 3000: the last lattice), then times ``--steps`` steps
+to step ``--at`` (by default 0.82 of the run: past the last growth, on the final lattice), then times ``--steps`` steps
 split into their parts, and the same number of the trainer's whole steps at each ray count
 of ``--rays``.
 Wall times in ms, medians for the whole steps. No profiler: torch's profiler charged a
@@ -50,7 +50,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
     p.add_argument("--method", default="nerf")
-    p.add_argument("--at", type=int, default=2450)
+    p.add_argument("--at", type=int, default=0, help="step to time from (0: 0.82 of the run)")
     p.add_argument("--steps", type=int, default=40)
     p.add_argument("--rays", default="512,1024,2048")
     p.add_argument("--out", default="/tmp/grid_step_split")
@@ -58,7 +58,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     overrides = scene_overrides(args.data) + ["trainer.progress=false", "trainer.eval_every=0",
                                               "trainer.checkpoint_every=0", *args.overrides]
-    _, trainer = build(args.method, overrides, Path(args.out))
+    cfg, trainer = build(args.method, overrides, Path(args.out))
+    args.at = args.at or int(0.82 * cfg.trainer.max_iters)
     while trainer.step < args.at:
         trainer.train_step()
     phase = trainer.phases.at(trainer.step)[0]

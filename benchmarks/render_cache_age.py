@@ -1,6 +1,6 @@
 """How recent is the background a ray field's rain head learns against?
 
-    OMP_NUM_THREADS=1 python benchmarks/render_cache_age.py --data SCENE [--marks 1500,2250,3000] [key=value ...]
+    OMP_NUM_THREADS=1 python benchmarks/render_cache_age.py --data SCENE [--marks 1000,1500,2000] [key=value ...]
 
 Trains ``--method`` (default ``rainyscape-nerf``) on SCENE (its rainy images, as rs-train
 would) and, at each mark, reports for the training views' render cache
@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
     p.add_argument("--method", default="rainyscape-nerf")
-    p.add_argument("--marks", default="1500,2250,3000")
+    p.add_argument("--marks", default="1000,1500,2000")
     p.add_argument("--out", default="/tmp/render_cache_age")
     p.add_argument("overrides", nargs="*")
     args = p.parse_args(argv)
