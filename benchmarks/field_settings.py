@@ -16,6 +16,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).parent))
 from fields import build, timed_steps  # noqa: E402
 
+from rainyscape.comparison.plan import fixed_length  # noqa: E402
 from rainyscape.eval.views import quick_eval  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).parent / "results" / "scenes" / "demo-64x3x6-v3"
@@ -27,7 +28,7 @@ def main(argv: list[str]) -> int:
         return 2
     iters, tag, overrides = int(argv[0]), argv[1], argv[2:]
     data = [] if any(o.startswith("data=") for o in overrides) else [f"data={DEFAULT_DATA}"]
-    _, trainer = build("nerf", data + [f"trainer.max_iters={iters}", f"field.lr_decay_steps={iters}",
+    _, trainer = build("nerf", data + [*fixed_length(iters), f"field.lr_decay_steps={iters}",
                                        "trainer.progress=false", "trainer.eval_every=0",
                                        "trainer.checkpoint_every=0", "trainer.eval_views=6", *overrides],
                        Path("outputs/benchmarks/field_settings") / tag)

@@ -51,6 +51,7 @@ def build(method: str, overrides: list[str], out: Path):
     cfg = with_scene(config.method_config(method, overrides))
     seed_everything(cfg.trainer.seed)
     scene = complete_scene(cfg, load_scene(cfg, scene_folder(cfg)))  # as rs-train
+    cfg = config.with_run_length(cfg, len(scene.train_indices), len(scene.train_indices) * scene.width * scene.height)
     pipeline = build_pipeline(cfg, scene, resolve_device(cfg.trainer.device))
     out.mkdir(parents=True, exist_ok=True)
     return cfg, Trainer(pipeline, out)
@@ -128,9 +129,11 @@ def heldout_metrics(trainer) -> dict:
 
 
 def speed(args) -> dict:
+    from rainyscape.comparison.plan import fixed_length
+
     base = clean_demo_overrides(args.data) + ["phases.fit.patches=4096", "phases.fit.patch_size=1"]
     out = Path(args.out)
-    _, grid = build("nerf", base + [f"trainer.max_iters={args.grid_steps}",
+    _, grid = build("nerf", base + [*fixed_length(args.grid_steps),
                                     f"field.lr_decay_steps={args.grid_steps}"], out / "speed-grid")
     grid_times = timed_steps(grid, args.grid_steps)
     tail = grid_times[-max(1, args.grid_steps // 5):]
@@ -152,9 +155,11 @@ def speed(args) -> dict:
 
 
 def quality(args) -> dict:
+    from rainyscape.comparison.plan import fixed_length
+
     overrides = clean_demo_overrides(args.data) + list(args.overrides)
     if args.iters:
-        overrides += [f"trainer.max_iters={args.iters}"]
+        overrides += fixed_length(args.iters)
         if args.method == "nerf":
             overrides += [f"field.lr_decay_steps={args.iters}"]
     cfg, trainer = build(args.method, overrides, Path(args.out) / f"quality-{args.method}")

@@ -32,6 +32,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fields import build, view_metrics  # noqa: E402  (benchmarks/fields.py)
+from rainyscape.comparison.plan import fixed_length  # noqa: E402
 
 
 def scene_overrides(data: str, rainy: bool = False) -> list[str]:
@@ -46,7 +47,7 @@ def run(args) -> dict:
     marks = sorted(int(m) for m in args.marks.split(","))
     overrides = scene_overrides(args.data, args.rainy) + [
         "trainer.progress=false", "trainer.eval_every=0", "trainer.checkpoint_every=0",
-        f"trainer.max_iters={args.iters or marks[-1]}", *args.overrides]
+        *fixed_length(args.iters or marks[-1]), *args.overrides]
     cfg, trainer = build(args.method, overrides, Path(args.out) / f"curve-{args.tag}")
     scene = trainer.scene
     wall = cpu = 0.0

@@ -32,6 +32,7 @@ def run_one(capture: str, method: str, length: float, threads: int, overrides: l
 
     from rainyscape.comparison.captures import benchmark_downscale, parse_capture
     from rainyscape.cameras import Window
+    from rainyscape.comparison.plan import fixed_length
     from rainyscape.config import method_config, with_run_length
     from rainyscape.engine.pipeline import build_pipeline
     from rainyscape.engine.trainer import Trainer
@@ -43,11 +44,11 @@ def run_one(capture: str, method: str, length: float, threads: int, overrides: l
     scene = parse_capture(folder, factor)
     cfg = method_config(method, [f"data={folder}", "profile=cpu", f"dataparser.downscale={factor}",
                                  "trainer.progress=false", "trainer.eval_every=0", *overrides])
-    cfg = with_run_length(cfg, len(scene.train_indices))
+    cfg = with_run_length(cfg, len(scene.train_indices), len(scene.train_indices) * scene.width * scene.height)
     steps = int(round(cfg.trainer.max_iters * length))
     cfg = method_config(method, [f"data={folder}", "profile=cpu", f"dataparser.downscale={factor}",
                                  "trainer.progress=false", "trainer.eval_every=0",
-                                 f"trainer.max_iters={steps}", "trainer.iters_per_view=0", *overrides])
+                                 *fixed_length(steps), *overrides])
     if cfg.field.name == "gaussians":  # as rs-train: points triangulated in the training views
         from rainyscape.process.scene_points import with_sparse_points
 

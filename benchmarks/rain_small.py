@@ -16,6 +16,7 @@ import argparse
 import json
 from pathlib import Path
 
+from rainyscape.comparison.plan import fixed_length
 from rainyscape.config import method_config
 from rainyscape.synth import generate
 from rainyscape.workflow import train_and_evaluate
@@ -37,7 +38,7 @@ def main() -> None:
     if not scene.exists():
         generate(scene, "demo", rows=2, cols=4, width=64, height=64, mode="static", seed=0)
     cfg = method_config(args.method, [f"data={scene}", "dataparser.points_from_depth=true",
-                                      f"trainer.max_iters={args.iters}", f"trainer.output_dir={root / args.tag}",
+                                      *fixed_length(args.iters), f"trainer.output_dir={root / args.tag}",
                                       "trainer.device=cpu", "trainer.progress=false", "trainer.eval_every=0",
                                       "trainer.checkpoint_every=0", *args.overrides])
     summary = json.loads((train_and_evaluate(cfg).run_dir / "metrics.json").read_text())["summary"]

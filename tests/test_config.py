@@ -137,6 +137,20 @@ def test_run_length_is_steps_per_training_view_within_bounds():
     assert "100 steps per training view" in describe_run_length(rule)
 
 
+def test_a_ray_fields_run_length_follows_its_training_pixels():
+    from rainyscape.config import TrainerConfig, describe_run_length, method_config, run_length
+
+    rule = TrainerConfig(max_iters=3000, iters_per_mpixel=7500, min_iters=2000)
+    # 16 views of 128 px (0.26 Mpx) at the floor, 18 of 252 x 189 (0.86 Mpx) at the cap, between them in proportion
+    assert [run_length(rule, v, px) for v, px in ((16, 16 * 128 * 128), (18, 18 * 252 * 189), (10, 320_000))] \
+        == [2000, 3000, 2400]
+    assert "7500 steps per million training pixels" in describe_run_length(rule)
+    nerf = method_config("nerf", []).trainer  # the recipe's rule, and every grid method's
+    assert (nerf.min_iters, nerf.max_iters, nerf.iters_per_mpixel) == (2000, 3000, 7500)
+    for name in ("robust-nerf", "rainyscape-nerf"):
+        assert method_config(name, []).trainer == nerf
+
+
 def test_the_scene_resolves_the_run_length_and_config_yml_records_it(toy_plugin, tiny_scene_dir, tmp_path):
     args = ["rs-train", "method=toy", f"data={tiny_scene_dir}", f"trainer.output_dir={tmp_path}",
             "trainer.max_iters=100", "trainer.iters_per_view=2", "trainer.min_iters=0"]

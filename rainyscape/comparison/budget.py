@@ -73,7 +73,7 @@ def cell_budget(cfg: PipelineConfig, width: int, height: int, train_views: int) 
     """The budget of a typed config on ``train_views`` training images of ``width`` x
     ``height`` pixels (as the dataparser delivers them, after any downscale). A run stopped
     early by ``trainer.stop_at`` counts the steps it runs."""
-    max_iters = run_length(cfg.trainer, train_views)
+    max_iters = run_length(cfg.trainer, train_views, train_views * width * height)
     steps = min(cfg.trainer.stop_at, max_iters) if cfg.trainer.stop_at else max_iters
     schedule = PhaseSchedule.of(cfg.phases, max_iters)
     phases, start = [], 0

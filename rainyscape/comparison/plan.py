@@ -78,8 +78,8 @@ def ceiling_methods(option: str, methods: list[str]) -> list[str]:
 
 
 def fixed_length(steps: int) -> list[str]:
-    """Overrides that make a run exactly ``steps`` long (whatever its steps-per-view rule)."""
-    return [f"trainer.max_iters={steps}", "trainer.iters_per_view=0"]
+    """Overrides that make a run exactly ``steps`` long (whatever its run-length rule)."""
+    return [f"trainer.max_iters={steps}", "trainer.iters_per_view=0", "trainer.iters_per_mpixel=0"]
 
 
 def family_iters(methods: list[str], overrides: list[str], iters: dict[str, int]) -> dict[str, list[str]]:

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 from rainyscape.errors import ConfigError
 from rainyscape.methods.gaussians import GS_ITERS
-from rainyscape.methods.nerf import NERF_ITERS
+from rainyscape.methods.nerf import NERF_MIN_ITERS
 
 # light, medium, heavy, slanted 30 deg by wind, two directions (docs/simulator.md).
 CPU_PRESETS = ("yard", "crossroad", "plaza", "street", "bridge")
@@ -52,7 +52,7 @@ class SceneSet:
 
 SCENE_SETS: dict[str, SceneSet] = {s.name: s for s in [
     SceneSet("cpu", CPU_PRESETS, width=128, height=128, rows=3, cols=6,
-             iters={"grid": NERF_ITERS, "gaussians": 1500},
+             iters={"grid": NERF_MIN_ITERS, "gaussians": 1500},
              description="five presets (light, medium, heavy, slanted 30 deg, two directions) at 128 px, "
                          "3 x 6 views: the six-method table in at most an hour on 2 CPU cores"),
     SceneSet("paper", CPU_PRESETS, width=512, height=512, rows=5, cols=10,
@@ -60,14 +60,13 @@ SCENE_SETS: dict[str, SceneSet] = {s.name: s for s in [
              description="the same presets at the paper's size (5 x 10 views, 512 px) and step counts "
                          "(18k for NeRF, 30k for 3DGS): a GPU run"),
     SceneSet("distractors", DISTRACTOR_PRESETS, width=128, height=128, rows=3, cols=6,
-             iters={"grid": NERF_ITERS, "gaussians": GS_ITERS},
+             iters={"grid": NERF_MIN_ITERS, "gaussians": GS_ITERS},
              description="three rain-free scenes with transient people, cars and leaves, one set per view, "
                          "at the cpu set's size, the Gaussians at the 3DGS CPU recipe's longest run: "
                          "where the robust baselines must beat their plain fields"),
-    # the Gaussians at their recipe's 100 steps a training view (1500 to 3000): a capture's
-    # view count sets its run, as for a user's `rs-train`
-    SceneSet("real", (), width=0, height=0, rows=0, cols=0,
-             iters={"grid": NERF_ITERS}, captures=True,
+    # every method at its recipe's run for the capture, as for a user's `rs-train`: the
+    # Gaussians 100 steps a training view (1500 to 3000), the grid field by its pixels
+    SceneSet("real", (), width=0, height=0, rows=0, cols=0, captures=True,
              description="real captures (captures=FOLDER) at about 240 px with simulated rain in their own "
                          "cameras, light / medium / heavy; the photos are the ground truth"),
 ]}

@@ -106,10 +106,14 @@ def check_range(value: Any, metadata: Any, key: str) -> None:
 class TrainerConfig:
     """The run's length and bookkeeping (the engine's options)."""
 
-    max_iters: int = bounded(2000, 1, MAX_STEPS)  # the run's length (the most steps, with iters_per_view)
+    max_iters: int = bounded(2000, 1, MAX_STEPS)  # the run's length (the most steps, with a rule below)
     # > 0: the run is this many steps per training view, within min_iters .. max_iters, so a
     # capture of more views trains longer (resolved once the scene is read; config.yml records it)
     iters_per_view: int = bounded(0, 0, MAX_STEPS)
+    # > 0 (and iters_per_view 0): this many steps per million training pixels, within
+    # min_iters .. max_iters: a ray field's steps see a fixed number of rays, so a capture of
+    # more or larger views needs more of them
+    iters_per_mpixel: int = bounded(0, 0, MAX_STEPS)
     min_iters: int = bounded(0, 0, MAX_STEPS)
     stop_at: int = bounded(0, 0, MAX_STEPS)  # stop after this step (0: max_iters); resume continues the same schedule
     seed: int = bounded(0, 0, SEED_MAX)
@@ -136,11 +140,16 @@ RETIRED_KEYS = {
 }
 
 
-def run_length(trainer: TrainerConfig, train_views: int) -> int:
-    """The steps a run of ``trainer`` trains on a scene of ``train_views`` training views."""
-    if trainer.iters_per_view <= 0:
+def run_length(trainer: TrainerConfig, train_views: int, train_pixels: int = 0) -> int:
+    """The steps a run of ``trainer`` trains on a scene of ``train_views`` training views
+    holding ``train_pixels`` pixels in all."""
+    if trainer.iters_per_view > 0:
+        steps = trainer.iters_per_view * train_views
+    elif trainer.iters_per_mpixel > 0:
+        steps = round(trainer.iters_per_mpixel * train_pixels / 1e6)
+    else:
         return trainer.max_iters
-    return max(min(trainer.iters_per_view * train_views, trainer.max_iters), min(trainer.min_iters, trainer.max_iters))
+    return max(min(steps, trainer.max_iters), min(trainer.min_iters, trainer.max_iters))
 
 
 @dataclass
@@ -423,17 +432,22 @@ def _check_phases(cfg: PipelineConfig) -> None:
 
 def describe_run_length(trainer: TrainerConfig) -> str:
     """The rule :func:`run_length` applies, in words (for ``--help``)."""
-    if trainer.iters_per_view <= 0:
-        return f"{trainer.max_iters} steps (trainer.max_iters)"
-    return (f"{trainer.iters_per_view} steps per training view, at least {min(trainer.min_iters, trainer.max_iters)} "
-            f"and at most {trainer.max_iters} (trainer.iters_per_view, trainer.min_iters, trainer.max_iters; "
-            "trainer.iters_per_view=0 makes it trainer.max_iters)")
+    bounds = f"at least {min(trainer.min_iters, trainer.max_iters)} and at most {trainer.max_iters}"
+    if trainer.iters_per_view > 0:
+        return (f"{trainer.iters_per_view} steps per training view, {bounds} (trainer.iters_per_view, "
+                "trainer.min_iters, trainer.max_iters; trainer.iters_per_view=0 makes it trainer.max_iters)")
+    if trainer.iters_per_mpixel > 0:
+        return (f"{trainer.iters_per_mpixel} steps per million training pixels, {bounds} "
+                "(trainer.iters_per_mpixel, trainer.min_iters, trainer.max_iters; "
+                "trainer.iters_per_mpixel=0 makes it trainer.max_iters)")
+    return f"{trainer.max_iters} steps (trainer.max_iters)"
 
 
-def with_run_length(cfg: PipelineConfig, train_views: int) -> PipelineConfig:
+def with_run_length(cfg: PipelineConfig, train_views: int, train_pixels: int = 0) -> PipelineConfig:
     """``cfg`` with ``trainer.max_iters`` resolved by :func:`run_length` for a scene of
-    ``train_views`` training views (the same config when no rule applies)."""
-    length = run_length(cfg.trainer, train_views)
+    ``train_views`` training views of ``train_pixels`` pixels in all (the same config when no
+    rule applies)."""
+    length = run_length(cfg.trainer, train_views, train_pixels)
     if length == cfg.trainer.max_iters:
         return cfg
     return dataclasses.replace(cfg, trainer=dataclasses.replace(cfg.trainer, max_iters=length))
