@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 from rainyscape.errors import ConfigError
 from rainyscape.methods.gaussians import GS_ITERS
-from rainyscape.methods.nerf import NERF_MIN_ITERS
+from rainyscape.methods.nerf import NERF_ITERS, NERF_MIN_ITERS
 
 # light, medium, heavy, slanted 30 deg by wind, two directions (docs/simulator.md).
 CPU_PRESETS = ("yard", "crossroad", "plaza", "street", "bridge")
@@ -60,10 +60,10 @@ SCENE_SETS: dict[str, SceneSet] = {s.name: s for s in [
              description="the same presets at the paper's size (5 x 10 views, 512 px) and step counts "
                          "(18k for NeRF, 30k for 3DGS): a GPU run"),
     SceneSet("distractors", DISTRACTOR_PRESETS, width=128, height=128, rows=3, cols=6,
-             iters={"grid": NERF_MIN_ITERS, "gaussians": GS_ITERS},
+             iters={"grid": NERF_ITERS, "gaussians": GS_ITERS},
              description="three rain-free scenes with transient people, cars and leaves, one set per view, "
-                         "at the cpu set's size, the Gaussians at the 3DGS CPU recipe's longest run: "
-                         "where the robust baselines must beat their plain fields"),
+                         "at the cpu set's size, each field at its CPU recipe's longest run (the peers' "
+                         "masks need the steps): where the robust baselines must beat their plain fields"),
     # every method at its recipe's run for the capture, as for a user's `rs-train`: the
     # Gaussians 100 steps a training view (1500 to 3000), the grid field by its pixels
     SceneSet("real", (), width=0, height=0, rows=0, cols=0, captures=True,
