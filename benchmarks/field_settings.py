@@ -28,7 +28,7 @@ def main(argv: list[str]) -> int:
         return 2
     iters, tag, overrides = int(argv[0]), argv[1], argv[2:]
     data = [] if any(o.startswith("data=") for o in overrides) else [f"data={DEFAULT_DATA}"]
-    _, trainer = build("nerf", data + [*fixed_length(iters), f"field.lr_decay_steps={iters}",
+    _, trainer = build("nerf", data + [*fixed_length(iters),
                                        "trainer.progress=false", "trainer.eval_every=0",
                                        "trainer.checkpoint_every=0", "trainer.eval_views=6", *overrides],
                        Path("outputs/benchmarks/field_settings") / tag)

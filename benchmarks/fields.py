@@ -133,8 +133,7 @@ def speed(args) -> dict:
 
     base = clean_demo_overrides(args.data) + ["phases.fit.patches=4096", "phases.fit.patch_size=1"]
     out = Path(args.out)
-    _, grid = build("nerf", base + [*fixed_length(args.grid_steps),
-                                    f"field.lr_decay_steps={args.grid_steps}"], out / "speed-grid")
+    _, grid = build("nerf", base + fixed_length(args.grid_steps), out / "speed-grid")
     grid_times = timed_steps(grid, args.grid_steps)
     tail = grid_times[-max(1, args.grid_steps // 5):]
     _, mlp = build("vanilla-nerf", base, out / "speed-mlp")
@@ -159,9 +158,7 @@ def quality(args) -> dict:
 
     overrides = clean_demo_overrides(args.data) + list(args.overrides)
     if args.iters:
-        overrides += fixed_length(args.iters)
-        if args.method == "nerf":
-            overrides += [f"field.lr_decay_steps={args.iters}"]
+        overrides += fixed_length(args.iters)  # the grid's rates decay over the run's length
     cfg, trainer = build(args.method, overrides, Path(args.out) / f"quality-{args.method}")
     marks = sorted(args.minutes)
     results, trained = [], 0.0
