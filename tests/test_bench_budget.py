@@ -15,7 +15,8 @@ from rainyscape.config import method_config
 from rainyscape.errors import ConfigError
 
 
-PAPER_PATCH = ("phases.joint.patches=1", "phases.joint.patch_size=64", "phases.joint.rays=0")  # one 64 x 64 patch
+PAPER_PATCH = ("phases.warmup.end=0.5", "phases.joint.patches=1", "phases.joint.patch_size=64",
+               "phases.joint.rays=0")  # the paper: half the run warm-up, then one 64 x 64 patch
 
 
 def _budget(method: str, *overrides: str, size: int = 128) -> Budget:
@@ -28,7 +29,7 @@ def test_budgets_of_the_real_methods():
     robust = _budget("robust-nerf")  # 16 x 16 patches with nerf's rays per step
     assert robust.family == "grid" and robust.same_as(nerf)
     ours = _budget("rainyscape-nerf")  # warm-up: nerf's rays; joint: 16 patches of 4 x 4 and 768 rays, as many
-    assert [(p.name, p.steps, p.pixels) for p in ours.phases] == [("warmup", 50, 1024), ("joint", 50, 1024)]
+    assert [(p.name, p.steps, p.pixels) for p in ours.phases] == [("warmup", 35, 1024), ("joint", 65, 1024)]
     assert ours.same_as(nerf)
     paper = _budget("rainyscape-nerf", *PAPER_PATCH)  # the paper's 64 x 64 joint patch on nerf's warm-up
     assert paper.pixels_per_step == 2560 and not paper.same_as(nerf)
