@@ -131,7 +131,8 @@ def test_plugin_rain_head_trains_through_a_builtin_rain_method(toy_env, tiny_sce
     rainyscape-nerf: it predicts R in the joint phase and the rain losses train it."""
     out_root = tmp_path / "outputs"
     args = ["rs-train", "method=rainyscape-nerf", "rain_head=toy-rain", f"data={tiny_scene_dir}",
-            f"trainer.output_dir={out_root}", "trainer.max_iters=16", "phases.joint.patch_size=16",
+            f"trainer.output_dir={out_root}", "trainer.max_iters=16", "phases.warmup.end=0.5",
+            "phases.joint.patch_size=16",
             "trainer.eval_every=0", "trainer.log_every=1", "trainer.progress=false", "trainer.device=cpu",
             *SMALL_GRID]
     done = subprocess.run(args, capture_output=True, text=True, env=toy_env)
