@@ -51,7 +51,7 @@ def build(method: str, overrides: list[str], out: Path):
     cfg = with_scene(config.method_config(method, overrides))
     seed_everything(cfg.trainer.seed)
     scene = complete_scene(cfg, load_scene(cfg, scene_folder(cfg)))  # as rs-train
-    cfg = config.with_run_length(cfg, len(scene.train_indices), len(scene.train_indices) * scene.width * scene.height)
+    cfg = config.with_run_length(cfg, len(scene.train_indices), scene.train_pixels)
     pipeline = build_pipeline(cfg, scene, resolve_device(cfg.trainer.device))
     out.mkdir(parents=True, exist_ok=True)
     return cfg, Trainer(pipeline, out)

@@ -44,7 +44,7 @@ def run_one(capture: str, method: str, length: float, threads: int, overrides: l
     scene = parse_capture(folder, factor)
     cfg = method_config(method, [f"data={folder}", "profile=cpu", f"dataparser.downscale={factor}",
                                  "trainer.progress=false", "trainer.eval_every=0", *overrides])
-    cfg = with_run_length(cfg, len(scene.train_indices), len(scene.train_indices) * scene.width * scene.height)
+    cfg = with_run_length(cfg, len(scene.train_indices), scene.train_pixels)
     steps = int(round(cfg.trainer.max_iters * length))
     cfg = method_config(method, [f"data={folder}", "profile=cpu", f"dataparser.downscale={factor}",
                                  "trainer.progress=false", "trainer.eval_every=0",

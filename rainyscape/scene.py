@@ -64,6 +64,11 @@ class SceneData:
     def width(self) -> int:
         return self.cameras.width
 
+    @property
+    def train_pixels(self) -> int:
+        """Pixels of the training views in all (a ray field's run length follows them)."""
+        return len(self.train_indices) * self.width * self.height
+
     def to_original(self, points: Tensor) -> Tensor:
         """Map normalised world points (P, 3) back to the input's world frame."""
         hom = torch.cat([points / self.scale, torch.ones_like(points[:, :1])], -1)

@@ -98,7 +98,7 @@ def open_run(cfg: PipelineConfig, run_dir: Path | None = None,
         scene = load_scene(cfg, scene_folder(cfg))
         if prepare_scene is not None:
             scene = prepare_scene(cfg, scene)
-        cfg = with_run_length(cfg, len(scene.train_indices), len(scene.train_indices) * scene.width * scene.height)
+        cfg = with_run_length(cfg, len(scene.train_indices), scene.train_pixels)
         if run_dir is None:
             created = new_run_dir(cfg.trainer.output_dir, scene.name, cfg.method)
             run_dir = created.path
