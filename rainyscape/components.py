@@ -148,6 +148,12 @@ class ImageHead(nn.Module):
         layer; a head predicting an occluding (colour, alpha) layer lays it over instead."""
         return below + layer
 
+    def for_field(self, layer: Tensor, residual: Tensor) -> Tensor:
+        """The part of ``layer`` (B, C, h, w) the field is fitted without: what the terms that
+        see the layer detached and a ray field's single rays read (``residual``: the input
+        less the field's render there). The whole layer unless the head narrows it."""
+        return layer
+
     def callbacks(self) -> list[Callback]:
         """Hooks the trainer calls for this head (e.g. changing its parameter set)."""
         return []
@@ -197,6 +203,9 @@ class LossContext:
     # False while a head's latent update evaluates the loss as its energy (on a crop): terms
     # then leave what they record (metrics, estimated angles) to the network update's call
     record: bool = True
+    # Each layer as the field is fitted without it (the head's ``for_field``): what a term
+    # that sees a layer detached reads; absent: the layer itself
+    field_layers: dict[str, Tensor] = field(default_factory=dict)
     # What terms derive from the batch alone (the input, the detached render and depth), not
     # from any layer: a latent update evaluates its energy several times on one context, and
     # these stay the same (copies made with ``replace`` share it; a new window needs a new one)

@@ -9,7 +9,7 @@ import torch
 
 from rainyscape.imaging.angles import (angle_difference_deg, bin_centers, estimate_rain_angles,
                                        histogram_peaks, matched_angle_error_deg, orientation_histogram,
-                                       streak_angle)
+                                       residual_streak_angle, streak_angle)
 from rainyscape.testing.streaks import streak_layer, textured_background
 
 
@@ -88,3 +88,16 @@ def test_matched_angle_error():
     assert matched_angle_error_deg([179.0, 60.0], [1.0, 64.0]) == 3.0  # period 180
     assert matched_angle_error_deg([90.0], [68.0, 110.0]) == 22.0  # one predicted: the strongest true
     assert matched_angle_error_deg([], [90.0]) is None and matched_angle_error_deg([90.0], []) is None
+
+
+def test_residual_streak_angle_reads_the_brighter_part_of_a_residual():
+    """Rain adds light: streaks at 75 degrees in the brighter part of a residual are found
+    through dark detail at 20 degrees that the render overshot; an empty residual has none."""
+    g = torch.Generator().manual_seed(4)
+    bright = streak_layer(64, 75.0, 25, g)
+    dark = streak_layer(64, 20.0, 40, g)
+    residual = (bright - dark).expand(2, 3, 64, 64).clone()
+    residual[1] = 0.0
+    angle, valid = residual_streak_angle(residual)
+    assert valid.tolist() == [True, False]
+    assert angle_difference_deg(math.degrees(float(angle[0])), 75.0) <= 3.0

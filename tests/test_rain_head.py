@@ -191,3 +191,22 @@ def test_bad_options_are_config_errors():
         _head(_scene(), upscale=0)
     with pytest.raises(ConfigError):
         _head(_scene(), lowres_channels=())
+
+
+def test_the_field_fits_without_the_streak_shaped_part_of_r_only():
+    """``field_streaks``: of a whole-view R holding rain streaks and a smear across them (detail
+    the field missed, taken for rain), the field is fitted without the streaks; 0 keeps R."""
+    import math
+
+    scene = _scene(n=1, height=48, width=48)
+    ys, xs = torch.meshgrid(torch.arange(48.0), torch.arange(48.0), indexing="ij")
+    streaks = ((xs % 8 == 3) & (ys % 24 < 14)).float() * 0.3  # vertical, 14 px long
+    smear = ((ys == 30) & (xs > 5) & (xs < 40)).float() * 0.4  # horizontal
+    rain = (streaks + smear).expand(1, 3, 48, 48)
+    residual = streaks.expand(1, 3, 48, 48) + 0.01 * torch.randn(1, 3, 48, 48)
+    assert _head(scene).for_field(rain, residual) is rain
+    kept = _head(scene, field_streaks=2).for_field(rain, residual)[0, 0]
+    on_streaks, on_smear = streaks > 0, (smear > 0) & (streaks == 0)
+    assert float(kept[on_streaks].mean()) > 0.25
+    assert float(kept[on_smear].max()) < 0.02
+    assert math.isclose(float(kept.clamp_min(0).min()), 0.0, abs_tol=1e-6)

@@ -14,7 +14,7 @@ from rainyscape.engine.pipeline import Pipeline, build_pipeline
 from rainyscape.errors import ConfigError
 from rainyscape.eval.protocol import evaluate_pipeline
 from rainyscape.imaging.metrics import psnr
-from rainyscape.imaging.streaks import line_mean
+from rainyscape.imaging.streaks import line_mean, line_opening
 from rainyscape.postprocess.fusion import rain_mask, robust_threshold
 from rainyscape.postprocess.streak_fusion import StreakFusion, streak_mask
 from _eval_fixtures import OracleField, make_scene
@@ -32,6 +32,23 @@ def test_line_mean_keeps_a_line_along_its_direction_and_spreads_it_across():
     assert float(across[5, 2]) == pytest.approx(0.0, abs=1e-6)
     flat = torch.full((2, 3, 9, 11), 0.4)
     assert torch.allclose(line_mean(flat, torch.tensor([0.3, 2.0]), 4), flat, atol=1e-6)
+
+
+def test_line_opening_keeps_what_runs_along_the_line_and_removes_the_rest():
+    image = torch.zeros(1, 1, 24, 24)
+    image[0, 0, 2:20, 6] = 1.0  # a vertical line, 18 px
+    image[0, 0, 12, 10:22] = 0.6  # a horizontal one
+    image[0, 0, 4, 16] = 0.8  # a dot
+    image[0, 0, 20:23, 12] = 0.7  # a vertical line shorter than the opening's 5 px
+    opened = line_opening(image, torch.tensor([math.pi / 2]), 2)[0, 0]
+    assert torch.allclose(opened[2:20, 6], torch.ones(18), atol=1e-5)
+    assert float(opened[12, 10:22].abs().max()) < 1e-6
+    assert float(opened[4, 16]) < 1e-6 and float(opened[20:23, 12].max()) < 1e-6
+    # a line 10 degrees off the direction keeps most of its level and nothing leaks beside it
+    tilted = _streaks(40, 40, 100.0, 13.0, 0)[None, None]
+    opened = line_opening(tilted, torch.tensor([math.pi / 2]), 2)
+    assert bool((opened <= tilted + 1e-6).all())
+    assert float(opened.sum() / tilted.sum()) > 0.5
 
 
 def _streaks(h: int, w: int, angle_deg: float, period: float, seed: int) -> torch.Tensor:

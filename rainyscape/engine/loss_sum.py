@@ -16,7 +16,8 @@ def compute_losses(terms: dict[str, tuple[LossConfig, Loss]], ctx: LossContext
                    ) -> tuple[Tensor, dict[str, Tensor]]:
     """Weighted sum of the loss terms, and each term's value (detached, on the device: reading
     it waits for the device, which the caller does only for what it logs) by its key; a term
-    with ``detach`` sees the render (``rendered``) or that layer without its gradient."""
+    with ``detach`` sees the render (``rendered``) or that layer without its gradient, as the
+    field is fitted without it (``ctx.field_layers``)."""
     total = torch.zeros((), device=ctx.rendered.device)
     values: dict[str, Tensor] = {}
     for key, (cfg, term) in terms.items():
@@ -24,7 +25,8 @@ def compute_losses(terms: dict[str, tuple[LossConfig, Loss]], ctx: LossContext
         if cfg.detach == "rendered":
             c = replace(ctx, rendered=ctx.rendered.detach())
         elif cfg.detach in ctx.layers:
-            c = replace(ctx, layers={**ctx.layers, cfg.detach: ctx.layers[cfg.detach].detach()})
+            layer = ctx.field_layers.get(cfg.detach, ctx.layers[cfg.detach])
+            c = replace(ctx, layers={**ctx.layers, cfg.detach: layer.detach()})
         value = term(c)
         total = total + cfg.weight * value
         values[key] = value.detach()

@@ -147,7 +147,10 @@ class Trainer:
         for head in heads:
             head.train()
             layers[head.layer] = head(view_ids.to(self.device), window)
-        ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window)
+        residual = (target - out.rgb).detach()
+        field_layers = {h.layer: h.for_field(layers[h.layer].detach(), residual) for h in heads}
+        ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window,
+                          field_layers=field_layers)
         terms = self.pipeline.loss_terms(name)
         total, values = compute_losses(terms, ctx)
         # what the terms measured on this batch (the latent updates below evaluate them again)
@@ -164,11 +167,12 @@ class Trainer:
             total = total + cached_total
             values.update({f"cached_views.{k}": v for k, v in cached_values.items()})
         # the render with every layer laid over it (what the input should look like)
-        fit = out.rgb.detach()
+        fit, field_fit = out.rgb.detach(), out.rgb.detach()
         for head in heads:
             fit = head.composite(fit, layers[head.layer].detach())
+            field_fit = head.composite(field_fit, field_layers[head.layer])
         # the field's own losses fit what the layers leave of the input
-        field_target = target if not layers else (target - (fit - out.rgb.detach())).detach()
+        field_target = target if not layers else (target - (field_fit - out.rgb.detach())).detach()
         for key, value in self.pipeline.field.extra_losses(out, field_target).items():
             total = total + value
             values[f"field.{key}"] = value.detach()
@@ -227,9 +231,10 @@ class Trainer:
         views = view_ids.to(self.device)
         cached = self.render_cache.read(views, window)
         layers = {head.layer: head(views, window) for head in heads}
-        for layer, cache in self.layer_caches.items():
-            if layer in layers:
-                cache.write(views, layers[layer])
+        residual = target - cached.rgb
+        for head in heads:
+            if head.layer in self.layer_caches:
+                self.layer_caches[head.layer].write(views, head.for_field(layers[head.layer].detach(), residual))
         ctx = LossContext(cached.rgb, target, layers, cached, view_ids, self.step, name, window, record=False)
         return compute_losses(terms, ctx)
 

@@ -89,6 +89,13 @@ def streak_angle(theta: Tensor) -> Tensor:
     return torch.remainder(theta + math.pi / 2, math.pi)
 
 
+def residual_streak_angle(residual: Tensor) -> tuple[Tensor, Tensor]:
+    """The streak direction (B,) of residual images I - B (B, C, h, w), from their brighter
+    part (rain adds light), and whether one was found (B,)."""
+    theta, valid = estimate_rain_angles(residual.clamp_min(0))
+    return streak_angle(theta[:, 0]), valid[:, 0]
+
+
 def angle_difference_deg(a: float, b: float) -> float:
     """Smallest difference of two undirected angles in degrees (period 180)."""
     d = abs(a - b) % 180.0

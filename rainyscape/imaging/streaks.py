@@ -1,4 +1,4 @@
-"""Streak-shaped structure in an image: means along a line of a given direction.
+"""Streak-shaped structure in an image: means and openings along a line of a given direction.
 
 A rain streak is thin and long. Averaged along its own direction it keeps its level; scene
 detail, whose edges run every way, averages down unless it happens to run the same way.
@@ -7,25 +7,45 @@ Pure functions on tensors.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 
-def line_mean(images: Tensor, angle: Tensor, half_length: int) -> Tensor:
-    """The mean of (B, C, h, w) ``images`` over the 2 ``half_length`` + 1 points one pixel
-    apart on the line through each pixel at ``angle`` (B,) radians (from the image +x axis
-    towards +y), sampled bilinearly, the border repeated beyond the image."""
+def line_samples(images: Tensor, angle: Tensor, half_length: int) -> Iterator[Tensor]:
+    """The (B, C, h, w) ``images`` shifted by t = -``half_length`` .. ``half_length`` pixels
+    along the line at ``angle`` (B,) radians (from the image +x axis towards +y), sampled
+    bilinearly, the border repeated beyond the image: one image per t."""
     b, _, h, w = images.shape
     ys, xs = torch.meshgrid(torch.arange(h, dtype=images.dtype, device=images.device),
                             torch.arange(w, dtype=images.dtype, device=images.device), indexing="ij")
     dx = torch.cos(angle).to(images)[:, None, None]
     dy = torch.sin(angle).to(images)[:, None, None]
-    total = torch.zeros_like(images)
     for t in range(-half_length, half_length + 1):
         # pixel centre x -> (2 x + 1) / w - 1 (align_corners=False)
         gx = (2 * (xs + t * dx) + 1) / w - 1
         gy = (2 * (ys + t * dy) + 1) / h - 1
-        total += F.grid_sample(images, torch.stack([gx, gy], -1), mode="bilinear",
-                               padding_mode="border", align_corners=False)
+        yield F.grid_sample(images, torch.stack([gx, gy], -1), mode="bilinear",
+                            padding_mode="border", align_corners=False)
+
+
+def line_mean(images: Tensor, angle: Tensor, half_length: int) -> Tensor:
+    """The mean of (B, C, h, w) ``images`` over the 2 ``half_length`` + 1 points one pixel
+    apart on the line through each pixel at ``angle`` (B,) radians."""
+    total = torch.zeros_like(images)
+    for shifted in line_samples(images, angle, half_length):
+        total += shifted
     return total / (2 * half_length + 1)
+
+
+def line_opening(images: Tensor, angle: Tensor, half_length: int) -> Tensor:
+    """Morphological opening of (B, C, h, w) ``images`` by a line of 2 ``half_length`` + 1
+    points at ``angle`` (B,) radians: the minimum along the line (erosion), then the maximum
+    along it (dilation). What is at least that long in that direction keeps its level; dots,
+    blobs and lines in other directions are removed. Never above ``images``: the bilinear
+    samples of a line a little off the direction spread it onto its neighbours, which are
+    cut back to their own level."""
+    eroded = torch.stack(list(line_samples(images, angle, half_length))).amin(0)
+    return torch.minimum(torch.stack(list(line_samples(eroded, angle, half_length))).amax(0), images)

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from rainyscape.config.schema import bounded
-from rainyscape.imaging.angles import estimate_rain_angles, streak_angle
+from rainyscape.imaging.angles import residual_streak_angle
 from rainyscape.imaging.streaks import line_mean
 from rainyscape.postprocess.fusion import MaskedFusion, rain_mask, robust_threshold
 
@@ -29,11 +29,10 @@ def streak_mask(rendered: Tensor, rainy: Tensor, sigmas: float, half_length: int
     the residual above its robust threshold, and its mean along the streak direction above
     that mean's. Empty where the residual has no gradient to find a direction from."""
     residual = rainy - rendered
-    brighter = residual.clamp_min(0)[None]
-    theta, valid = estimate_rain_angles(brighter)  # the AGR loss's defaults
-    if not bool(valid[0, 0]):
+    angle, valid = residual_streak_angle(residual[None])  # the AGR loss's histogram defaults
+    if not bool(valid[0]):
         return torch.zeros_like(residual[:1], dtype=torch.bool)
-    along = line_mean(brighter, streak_angle(theta[:, 0]), half_length)[0]
+    along = line_mean(residual.clamp_min(0)[None], angle, half_length)[0]
     return (rain_mask(residual, robust_threshold(residual, sigmas), dilation)
             & rain_mask(along, robust_threshold(along, sigmas), dilation))
 

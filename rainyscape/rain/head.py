@@ -33,7 +33,10 @@ from torch import Tensor, nn
 
 from rainyscape.cameras import Cameras, Window
 from rainyscape.components import Energy, ParamGroup, RainHead
+from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
+from rainyscape.imaging.angles import residual_streak_angle
+from rainyscape.imaging.streaks import line_opening
 from rainyscape.rain.langevin import langevin_update
 from rainyscape.scene import SceneData
 
@@ -101,6 +104,11 @@ class RainPredictor(RainHead):
         langevin_noise: float = 1.0  # the noise's scale (1: d N(0, 1), the paper's)
         langevin_prior_var: float = 50.0
         latent_patch_size: int = 0  # latent steps on a random crop of the step's window (0: all of it)
+        # The field is fitted to the input less R opened by a line of 2 n + 1 pixels along
+        # the streaks (imaging/streaks.py; the direction from the window's residual, as
+        # streak fusion's): what R holds that is not streak-shaped stays the field's to fit.
+        # The line must be shorter than the rain's streaks (docs/rain.md). 0: less R, the paper's
+        field_streaks: int = bounded(0, 0, 32)
         # Speed only (outputs agree to float rounding): channels-last convolutions ...
         channels_last: bool = True
         # ... and, opt-in, the CNN in bfloat16 under CUDA autocast (rounding ~1e-2 relative)
@@ -163,6 +171,14 @@ class RainPredictor(RainHead):
         langevin_update(self.latents(), self, view_ids, window, energy, generator, c.latent_steps,
                         c.latent_noise_steps, c.langevin_step, c.langevin_prior_var, c.latent_patch_size,
                         c.langevin_noise)
+
+    def for_field(self, layer: Tensor, residual: Tensor) -> Tensor:
+        half = self.config.field_streaks
+        if half <= 0:
+            return layer
+        angle, valid = residual_streak_angle(residual)  # as streak fusion finds it
+        # a window whose residual shows no direction keeps its whole R
+        return torch.where(valid[:, None, None, None], line_opening(layer, angle, half), layer)
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config
