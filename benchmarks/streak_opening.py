@@ -16,14 +16,13 @@ from pathlib import Path
 import torch
 
 from rainyscape.dataparsers.images import read_rgb
-from rainyscape.imaging.angles import estimate_rain_angles, streak_angle
+from rainyscape.imaging.angles import residual_streak_angle
 from rainyscape.imaging.streaks import line_opening
 
 
 def kept_shares(rain: torch.Tensor, halves: list[int]) -> list[float]:
     """Share of ``rain`` (1, 3, H, W) kept by the opening along its own direction, per half length."""
-    theta, _ = estimate_rain_angles(rain)
-    angle = streak_angle(theta[:, 0])
+    angle, _ = residual_streak_angle(rain)
     return [float(line_opening(rain, angle, h).sum() / rain.sum().clamp_min(1e-12)) for h in halves]
 
 

@@ -8,6 +8,7 @@ Pure functions on tensors.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from functools import reduce
 
 import torch
 import torch.nn.functional as F
@@ -34,10 +35,7 @@ def line_samples(images: Tensor, angle: Tensor, half_length: int) -> Iterator[Te
 def line_mean(images: Tensor, angle: Tensor, half_length: int) -> Tensor:
     """The mean of (B, C, h, w) ``images`` over the 2 ``half_length`` + 1 points one pixel
     apart on the line through each pixel at ``angle`` (B,) radians."""
-    total = torch.zeros_like(images)
-    for shifted in line_samples(images, angle, half_length):
-        total += shifted
-    return total / (2 * half_length + 1)
+    return reduce(torch.add, line_samples(images, angle, half_length)) / (2 * half_length + 1)
 
 
 def line_opening(images: Tensor, angle: Tensor, half_length: int) -> Tensor:
@@ -47,5 +45,5 @@ def line_opening(images: Tensor, angle: Tensor, half_length: int) -> Tensor:
     blobs and lines in other directions are removed. Never above ``images``: the bilinear
     samples of a line a little off the direction spread it onto its neighbours, which are
     cut back to their own level."""
-    eroded = torch.stack(list(line_samples(images, angle, half_length))).amin(0)
-    return torch.minimum(torch.stack(list(line_samples(eroded, angle, half_length))).amax(0), images)
+    eroded = reduce(torch.minimum, line_samples(images, angle, half_length))
+    return torch.minimum(reduce(torch.maximum, line_samples(eroded, angle, half_length)), images)
