@@ -478,8 +478,14 @@ def test_rainyscape_plus_is_rainyscape_3dgs_with_multiview_rain_capped_tv_and_th
     for key in paper.losses:
         if key != "tv":
             assert plus.losses[key] == paper.losses[key], key
-    assert (plus.field, plus.rain_head, plus.phases, plus.trainer) == \
-        (paper.field, paper.rain_head, paper.phases, paper.trainer)
+    assert (plus.field, plus.phases, plus.trainer) == (paper.field, paper.phases, paper.trainer)
+    # its CPU head: the latent at full resolution with four channels, the field fitted without
+    # the streak-shaped part of R; the GPU recipe keeps the paper's latent
+    head, paper_head = vars(plus.rain_head.options), vars(paper.rain_head.options)
+    assert {k: v for k, v in head.items() if paper_head[k] != v} == \
+        {"upscale": 1, "latent_channels": 4, "field_streaks": 1}
+    gpu = [method_config(m, ["profile=gpu", "trainer.device=cpu"]).rain_head.options for m in ("rainyscape-plus", "rainyscape-3dgs")]
+    assert (gpu[0].upscale, gpu[0].latent_channels) == (gpu[1].upscale, gpu[1].latent_channels) == (2, 1)
 
 
 def test_rainyscape_plus_trains_with_its_floater_prior_acting(tiny_scene, tmp_path):
