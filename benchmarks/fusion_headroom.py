@@ -21,19 +21,18 @@ from pathlib import Path
 import torch
 
 from rainyscape.engine.run import load_run
+from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image
 from rainyscape.imaging.metrics import psnr
 from rainyscape.postprocess.fusion import fuse, rain_mask
 from rainyscape.postprocess.streak_fusion import StreakFusion, streak_mask
-
-TRUE_RAIN = 0.02  # the rs-bench rule for a pixel in rain
 
 
 def view_rows(rendered: torch.Tensor, rainy: torch.Tensor, clean: torch.Tensor, rain: torch.Tensor) -> dict:
     """The fused views' PSNR (dB) and the streak mask's statistics for one view (3, H, W) each."""
     c = StreakFusion.Config()
     streak = streak_mask(rendered, rainy, c.sigmas, c.half_length, c.dilation)
-    true, grown = rain_mask(rain, TRUE_RAIN, 0), rain_mask(rain, TRUE_RAIN, 1)
+    true, grown = rain_mask(rain, RAIN_PIXEL, 0), rain_mask(rain, RAIN_PIXEL, 1)
 
     def fused(mask: torch.Tensor) -> float:
         return float(psnr(fuse(rendered, rainy, mask)[None], clean[None]))
