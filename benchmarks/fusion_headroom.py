@@ -25,13 +25,12 @@ from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image
 from rainyscape.imaging.metrics import psnr
 from rainyscape.postprocess.fusion import fuse, rain_mask
-from rainyscape.postprocess.streak_fusion import StreakFusion, streak_mask
+from rainyscape.postprocess.streak_fusion import StreakFusion
 
 
 def view_rows(rendered: torch.Tensor, rainy: torch.Tensor, clean: torch.Tensor, rain: torch.Tensor) -> dict:
     """The fused views' PSNR (dB) and the streak mask's statistics for one view (3, H, W) each."""
-    c = StreakFusion.Config()
-    streak = streak_mask(rendered, rainy, c.sigmas, c.half_length, c.dilation)
+    streak = StreakFusion().mask(rendered, None, rainy)
     true, grown = rain_mask(rain, RAIN_PIXEL, 0), rain_mask(rain, RAIN_PIXEL, 1)
 
     def fused(mask: torch.Tensor) -> float:
