@@ -26,7 +26,7 @@ def _budget(method: str, *overrides: str, size: int = 128) -> Budget:
 def test_budgets_of_the_real_methods():
     nerf = _budget("nerf")
     assert (nerf.family, nerf.steps, nerf.pixels_per_step) == ("grid", 100, 1024)
-    robust = _budget("robust-nerf")  # 16 x 16 patches with nerf's rays per step
+    robust = _budget("robust-nerf")  # nerf's single rays
     assert robust.family == "grid" and robust.same_as(nerf)
     ours = _budget("rainyscape-nerf")  # warm-up: nerf's rays; joint: 16 patches of 4 x 4 and 768 rays, as many
     assert [(p.name, p.steps, p.pixels) for p in ours.phases] == [("warmup", 35, 1024), ("joint", 65, 1024)]

@@ -10,9 +10,10 @@ import math
 import pytest
 import torch
 
+from rainyscape.cameras import Window
 from rainyscape.components import LossContext, RenderOutput, TrainState
 from rainyscape.errors import ConfigError
-from rainyscape.losses.robust import RobustNeRFLoss, robustnerf_mask
+from rainyscape.losses.robust import ResidualMap, RobustNeRFLoss, robustnerf_mask, virtual_patches
 from rainyscape.losses.robust_filter import (ParamReset, RobustFilter, blend_weight, histogram_percentile,
                                              robust_filter_mask)
 
@@ -91,7 +92,7 @@ def test_robustnerf_threshold_pools_small_batches_up_to_the_papers_64_patches():
         residuals.append((rendered ** 2).mean(1).flatten(1))
     pooled = torch.cat(residuals[-32:])  # the last 32 batches: 64 patches
     assert loss.threshold == pytest.approx(float(torch.quantile(pooled.flatten(), 0.8)), rel=1e-5)
-    assert sum(len(r) for r in loss.pool) == 64
+    assert sum(len(r) for r in loss.pool) == 64 * 16 * 16
     restored = RobustNeRFLoss()
     restored.load_state_dict(loss.state_dict())
     assert all(torch.equal(a, b) for a, b in zip(restored.pool, loss.pool))
@@ -112,6 +113,79 @@ def test_robustnerf_no_gradient_from_trimmed_pixels_and_mean_over_every_pixel():
     assert float(x.grad[..., :3, :3].abs().max()) == 0.0 and float(x.grad[..., 3, 3].abs().min()) > 0
     with pytest.raises(ConfigError, match="inlier_quantile"):
         RobustNeRFLoss(RobustNeRFLoss.Config(inlier_quantile=0.0))
+
+
+def _rays(xs: list[int], ys: list[int]) -> Window:
+    """Single-ray windows at the pixels (xs[i], ys[i])."""
+    return Window(torch.tensor(xs), torch.tensor(ys), 1, 1)
+
+
+def test_residual_map_reads_what_was_written_and_forgets_old_pixels():
+    grid = ResidualMap(views=2, height=4, width=5)
+    grid.write(torch.tensor([1, 1]), _rays([0, 1], [0, 0]), torch.tensor([0.3, 0.7])[:, None, None, None], step=2)
+    grid.write(torch.tensor([1]), _rays([2], [0]), torch.tensor([0.9])[:, None, None, None], step=9)
+    residuals, known = grid.read(torch.tensor([1]), Window(torch.tensor([0]), torch.tensor([0]), 3, 2), since=5)
+    # (0, 0) and (1, 0) were seen at step 2, before ``since``; (2, 0) at step 9; row 1 never
+    assert known[0, 0].tolist() == [[0, 0, 1], [0, 0, 0]]
+    assert residuals[0, 0, 0].tolist() == pytest.approx([0.3, 0.7, 0.9])
+    _, known = grid.read(torch.tensor([0]), _rays([1], [0]), since=0)
+    assert float(known.sum()) == 0  # view 0 was never seen
+
+
+def test_virtual_patches_hold_their_ray_inside_the_view_at_every_place():
+    g = torch.Generator().manual_seed(0)
+    xs = torch.tensor([0, 3, 20, 47] * 500)
+    patches, dy, dx = virtual_patches(_rays(xs.tolist(), (47 - xs).tolist()), 16, 48, 48, g)
+    assert bool((patches.x0 + dx == xs).all()) and bool((patches.y0 + dy == 47 - xs).all())
+    assert bool((patches.x0 >= 0).all()) and bool((patches.x0 + 16 <= 48).all())
+    assert bool((patches.y0 >= 0).all()) and bool((patches.y0 + 16 <= 48).all())
+    assert set(dx[xs == 20].tolist()) == set(range(16))  # inside: every place, as a random patch
+    # at the edges only the places that keep the patch inside the view
+    assert set(dx[xs == 3].tolist()) == {0, 1, 2, 3} and set(dx[xs == 0].tolist()) == {0}
+    assert set(dx[xs == 47].tolist()) == {15}
+
+
+def test_robustnerf_mask_leaves_unknown_pixels_out_of_the_shares():
+    residual = _residual(["110",
+                          "101",
+                          "000"])
+    known = torch.tensor([[1.0, 1, 1], [1, 1, 1], [0, 0, 0]])[None, None]  # the bottom row unseen
+    # the centre's 3 x 3 holds 4 inliers: 4 of 9 without ``known`` (not more than half), 4 of
+    # the 6 seen with it; the zero padding still counts as seen outliers ((0, 2): 2 of 9)
+    with_known = robustnerf_mask(residual, 0.5, inner_patch=0, known=known)
+    assert _mask_rows(with_known) == ["110", "111", "000"]
+    assert _mask_rows(robustnerf_mask(residual, 0.5, inner_patch=0)) == ["110", "101", "000"]
+    # the patch decision on the whole 3 x 3 window: 4 inliers of 6 seen, 4 of 9 without
+    assert int(robustnerf_mask(residual, 0.5, smooth_size=1, inner_patch=1, known=known)[0, 0, 1, 1]) == 1
+    assert int(robustnerf_mask(residual, 0.5, smooth_size=1, inner_patch=1)[0, 0, 1, 1]) == 0
+
+
+def test_robustnerf_on_single_rays_trims_a_blob_the_map_has_seen():
+    from types import SimpleNamespace
+    loss = RobustNeRFLoss(RobustNeRFLoss.Config(residual_map=True))
+    loss.setup(SimpleNamespace(images=torch.zeros(1, 32, 32, 3), height=32, width=32, train_pixels=32 * 32),
+               torch.device("cpu"))
+    loss.threshold = 0.01
+    ys, xs = torch.meshgrid(torch.arange(32), torch.arange(32), indexing="ij")
+    clean = torch.full((32 * 32, 3, 1, 1), 0.5)
+    target = clean.clone()
+    blob = ((xs - 16).abs() < 8) & ((ys - 16).abs() < 8)  # a 15 x 15 blob: over half of any patch holding its centre
+    target[blob.flatten()] = 1.0
+    window = Window(xs.flatten(), ys.flatten(), 1, 1)
+    views = torch.zeros(32 * 32, dtype=torch.long)
+    first = LossContext(clean, target, {}, RenderOutput(clean), views, 0, "fit", window)
+    loss(first)  # every pixel seen once: the map now holds the blob
+    ray = Window(torch.tensor([16, 2]), torch.tensor([16, 2]), 1, 1)  # the blob's centre, a clean pixel
+    x = torch.full((2, 3, 1, 1), 0.5, requires_grad=True)
+    target = torch.tensor([1.0, 0.6])[:, None, None, None].expand(2, 3, 1, 1)
+    loss.threshold = 0.05  # the clean pixel's residual 0.01 is inlier
+    loss(LossContext(x, target, {}, RenderOutput(x), views[:2], 1, "fit", ray)).backward()
+    assert float(x.grad[0].abs().max()) == 0.0 and float(x.grad[1].abs().min()) > 0
+    restored = RobustNeRFLoss(RobustNeRFLoss.Config(residual_map=True))
+    restored.setup(SimpleNamespace(images=torch.zeros(1, 32, 32, 3), height=32, width=32, train_pixels=32 * 32),
+                   torch.device("cpu"))
+    restored.load_state_dict(loss.state_dict())
+    assert torch.equal(restored.map.residuals, loss.map.residuals)
 
 
 # ---------------------------------------------------------------------- RobustFilter

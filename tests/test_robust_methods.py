@@ -17,14 +17,14 @@ def _rays(phase) -> int:
     return phase.patches * max(phase.patch_size, 1) ** 2
 
 
-def test_robust_nerf_is_nerf_with_robustnerfs_loss_on_16px_patches():
+def test_robust_nerf_is_nerf_with_robustnerfs_loss_on_its_single_rays():
     base, robust = config.method_config("nerf"), config.method_config("robust-nerf")
     assert robust.field == base.field and robust.dataparser == base.dataparser
     assert robust.rain_head is None and robust.postprocess == {}
     assert list(robust.losses) == ["robust"] and robust.losses["robust"].name == "robust"
     fit, plain = robust.phases["fit"], base.phases["fit"]
     assert robust.trainer.max_iters == base.trainer.max_iters and list(robust.phases) == ["fit"]
-    assert fit.patch_size == 16 and _rays(fit) == _rays(plain)  # nerf's rays per step, in patches
+    assert fit == plain and robust.losses["robust"].options.residual_map  # nerf's batch; the map decides
     assert cell_budget(robust, 64, 64, 16).same_as(cell_budget(base, 64, 64, 16))
     gpu, gpu_base = config.method_config("robust-nerf", ["profile=gpu"]), config.method_config("nerf", ["profile=gpu"])
     assert gpu.field == gpu_base.field and _rays(gpu.phases["fit"]) == _rays(gpu_base.phases["fit"])
@@ -61,13 +61,15 @@ def _train(method, tmp_path, scene, *extra):
     return run, [r for r in records if "metrics" in r]
 
 
-def test_robust_nerf_trains_and_checkpoints_its_threshold(tmp_path, tiny_scene_dir):
+def test_robust_nerf_trains_and_checkpoints_its_threshold_and_residual_map(tmp_path, tiny_scene_dir):
     run, records = _train("robust-nerf", tmp_path, tiny_scene_dir, "trainer.max_iters=6")
     assert len(records) == 6 and records[0]["metrics"]["robust.threshold"] == 1.0
     assert all(0.0 < r["metrics"]["robust.inlier_fraction"] <= 1.0 for r in records)
     state = torch.load(latest_checkpoint(run / "checkpoints"), weights_only=True)
     # the last batch was judged by the quantile of the one before; the checkpoint holds the next
     assert records[-1]["metrics"]["robust.threshold"] < 1.0 and state["losses"]["robust"]["threshold"] > 0
+    seen = state["losses"]["robust"]["map"]["seen"]  # the pixels the six steps' rays rendered
+    assert int(seen.max()) == 5 and 0 < int((seen >= 0).sum()) <= 6 * _rays(config.method_config("nerf").phases["fit"])
     assert json.loads((run / "metrics.json").read_text())["summary"]["train_psnr"] > 5
 
 

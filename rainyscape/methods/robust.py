@@ -6,9 +6,14 @@ comparison stays fair when the counterpart changes (the field, its options and t
 count are taken from it, never copied). No rain model: the whole run is one phase, ``fit``.
 Plain data only: this module imports no torch.
 
-- ``robust-nerf``: RobustNeRF's trimmed least squares (``losses/robust.py``) on a batch of
-  16 x 16 patches, the counterpart's rays per step spread over them (the paper's batch is
-  64 such patches, 16384 rays, on a GPU; ``nerf``'s CPU recipe has 1024 rays: 4 patches).
+- ``robust-nerf``: RobustNeRF's trimmed least squares (``losses/robust.py``) on the
+  counterpart's batch of single rays, each ray's 3 x 3 and patch decisions made on a
+  virtual 16 x 16 patch read from a map of the last residuals (``residual_map``). The
+  paper's batch of real 16 x 16 patches (64 of them, 16384 rays) stays an option
+  (``phases.fit.patches=4 phases.fit.patch_size=16 losses.robust.residual_map=false`` at
+  ``nerf``'s 1024 rays); on the grid field a k x k patch trains about as much as k random
+  rays, so at equal rays it starved the field (docs/benchmarks.md, "`robust-nerf` on single
+  rays").
 - ``robust-3dgs``: SpotLessSplats' RobustFilter (``losses/robust_filter.py``, L1 only) and
   its schedule changes to 3DGS: no opacity resets (its reset period is set past the run, as
   SpotLessSplats' 300k of 30k steps; large Gaussians are then not pruned either, as there),
@@ -22,9 +27,7 @@ import copy
 
 from rainyscape.config import LossConfig, MethodSpec, PipelineConfig
 from rainyscape.methods.gaussians import gaussians_3dgs
-from rainyscape.methods.nerf import NERF_GPU, NERF_GPU_RAYS, nerf
-
-PATCH = 16  # RobustNeRF's training patch (its 3 x 3 and patch decisions need the neighbours)
+from rainyscape.methods.nerf import nerf
 
 # SpotLessSplats' changes to the 3DGS schedule (its spotless_trainer.py defaults, 30k steps).
 SPOTLESS_FIELD = {"reset_every": 300_000, "refine_start": 1000}
@@ -44,17 +47,10 @@ def _plain(base: MethodSpec, name: str) -> PipelineConfig:
     return cfg
 
 
-def patches_for(rays: int) -> int:
-    """16 x 16 patches carrying ``rays`` rays per step (at least one)."""
-    return max(1, round(rays / PATCH ** 2))
-
-
 def _robust_nerf() -> PipelineConfig:
     cfg = _plain(nerf, "robust-nerf")
-    cfg.losses = {"robust": LossConfig("robust", weight=_photometric_weight(nerf), phases=("fit",))}
-    fit = cfg.phases["fit"]
-    rays = fit.patches * (fit.patch_size ** 2 if fit.patch_size > 0 else 1)
-    fit.patches, fit.patch_size = patches_for(rays), PATCH
+    cfg.losses = {"robust": LossConfig("robust", weight=_photometric_weight(nerf), phases=("fit",),
+                                       options={"residual_map": True})}
     return cfg
 
 
@@ -68,9 +64,9 @@ def _robust_3dgs() -> PipelineConfig:
 
 robust_nerf = MethodSpec(
     name="robust-nerf",
-    description="RobustNeRF on nerf's field: trimmed L2 over 16 x 16 patches (weight-free robust baseline, no rain model)",
+    description="RobustNeRF on nerf's field: trimmed L2, its patch decisions from a residual map (weight-free robust baseline, no rain model)",
     config=_robust_nerf(),
-    gpu=NERF_GPU + [f"phases.fit.patches={patches_for(NERF_GPU_RAYS)}"],  # nerf's GPU rays in patches
+    gpu=list(nerf.gpu),
 )
 
 robust_3dgs = MethodSpec(
