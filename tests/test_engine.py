@@ -86,6 +86,8 @@ RESUME_CASES = {
     # rain head, Langevin noise and joint phase across the split: latents must resume exactly
     "rainyscape-nerf": ["trainer.max_iters=12", "phases.warmup.end=0.5",
                         "phases.warmup.patches=4", "phases.joint.patch_size=16", *SMALL_GRID],
+    # RobustNeRF's threshold, pool and residual map: the trimmed rays must be the same ones
+    "robust-nerf": ["trainer.max_iters=12", *SMALL_GRID],
 }
 
 
