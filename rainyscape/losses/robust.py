@@ -7,8 +7,8 @@ loss is the squared error of the pixels judged inliers, over the batch's pixel c
 2. a pixel is an inlier when its residual is below the threshold T: the ``inlier_quantile``
    (0.8, the authors' 360 config) of the residuals of the *previous* batch of the paper's
    64 patches (1.0, i.e. everything, before the first batch), so a batch cannot lower its
-   own bar. A smaller batch (the CPU recipe's 4 patches) pools the last batches up to 64
-   patches: the quantile of 4 patches swung tenfold from step to step (0.008 to 0.13 on
+   own bar. A smaller batch pools the last batches' residuals up to the paper's 16384
+   pixels: the quantile of 4 patches swung tenfold from step to step (0.008 to 0.13 on
    plaza-crowd), so what a patch kept depended on what the previous 4 showed;
 3. 3 x 3 smoothing: also an inlier when more than ``smooth_threshold`` (0.5) of its 3 x 3
    neighbourhood is (zero padding at the window's border, as the authors' 'SAME'
