@@ -145,6 +145,23 @@ class Window:
         dy = torch.randint(self.height - h + 1, (len(self),), generator=generator)
         return Window(self.x0 + dx, self.y0 + dy, w, h)
 
+    def table_indices(self, view_ids: Tensor, height: int, width: int, device=None) -> Tensor:
+        """Where each pixel of the windows of the views ``view_ids`` sits in a per-view table
+        (views, ``height``, ``width``, ...) flattened over its first three dimensions: (B, h, w)."""
+        xs, ys = self.pixel_grid(device)
+        return (view_ids.to(xs.device)[:, None, None] * height + ys) * width + xs
+
+    def last_writes(self, view_ids: Tensor, height: int, width: int, device=None) -> tuple[Tensor, Tensor]:
+        """Writing the windows' pixels into such a table: which flattened batch rows to write
+        and to which cells, of a cell given twice the later row (an assignment with repeated
+        indices keeps either, by thread timing, and resumed runs would not match)."""
+        flat = self.table_indices(view_ids, height, width, device).reshape(-1)
+        order = torch.argsort(flat, stable=True)
+        ranked = flat[order]
+        last = torch.ones_like(ranked, dtype=torch.bool)
+        last[:-1] = ranked[1:] != ranked[:-1]
+        return order[last], ranked[last]
+
     def relative_to(self, outer: "Window") -> "Window":
         """This window in the pixel coordinates of ``outer`` (which contains it)."""
         return Window(self.x0 - outer.x0, self.y0 - outer.y0, self.width, self.height)

@@ -10,7 +10,8 @@ import torch
 
 from rainyscape.cameras import Window
 from rainyscape.components import RenderOutput
-from rainyscape.engine.render_cache import LayerCache, RenderCache, box_sum, fill_holes
+from rainyscape.engine.render_cache import LayerCache, RenderCache, fill_holes
+from rainyscape.imaging.filters import box_sum
 
 
 def _smooth(h: int = 24, w: int = 32) -> torch.Tensor:
@@ -23,6 +24,10 @@ def test_box_sum_is_the_square_windows_sum():
     for size in (3, 5, 9):
         square = torch.nn.functional.conv2d(x, torch.ones(1, 1, size, size), padding=size // 2)
         assert torch.allclose(box_sum(x, size), square, atol=1e-5)
+    # padded with a value, and an even size reaching one pixel further up and left
+    padded = torch.nn.functional.pad(x, (2, 1, 2, 1), value=1.0)
+    assert torch.allclose(box_sum(x, 4, value=1.0), torch.nn.functional.conv2d(padded, torch.ones(1, 1, 4, 4)),
+                          atol=1e-5)
 
 
 def test_fill_holes_keeps_known_pixels_and_fills_from_neighbours():

@@ -18,20 +18,12 @@ field's single rays that the head does not predict on (``phases.NAME.rays``).
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from rainyscape.cameras import Window
 from rainyscape.components import RenderOutput
 from rainyscape.engine.sampling import window_values
-
-
-def box_sum(images: Tensor, size: int) -> Tensor:
-    """Sum over the size x size square around each pixel of (N, 1, h, w) images (zero outside),
-    as two 1-D passes: the cost grows with ``size``, not its square."""
-    row = torch.ones(1, 1, 1, size, dtype=images.dtype, device=images.device)
-    across = F.conv2d(images, row, padding=(0, size // 2))
-    return F.conv2d(across, row.transpose(2, 3), padding=(size // 2, 0))
+from rainyscape.imaging.filters import box_sum
 
 
 def fill_holes(values: Tensor, known: Tensor) -> Tensor:
@@ -69,15 +61,8 @@ class RenderCache:
         """Keep the render of ``window`` of the views ``view_ids`` (the newest wins; of a pixel
         drawn twice in one batch, the later one: an assignment with repeated indices would
         keep either, by thread timing, and resumed runs would not match)."""
-        xs, ys = window.pixel_grid(self.rgb.device)
         height, width = self.known.shape[1:3]
-        v = view_ids.to(self.rgb.device)[:, None, None]
-        flat = ((v * height + ys) * width + xs).reshape(-1)
-        order = torch.argsort(flat, stable=True)
-        ranked = flat[order]
-        last = torch.ones_like(ranked, dtype=torch.bool)
-        last[:-1] = ranked[1:] != ranked[:-1]
-        rows, cells = order[last], ranked[last]
+        rows, cells = window.last_writes(view_ids, height, width, self.rgb.device)
         rgb = output.rgb.detach().permute(0, 2, 3, 1).reshape(-1, 3)
         self.rgb.view(-1, 3)[cells] = rgb[rows].to(self.rgb.dtype)
         if output.depth is not None:

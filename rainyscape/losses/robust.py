@@ -36,29 +36,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from rainyscape.cameras import Window
 from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
+from rainyscape.imaging.filters import box_sum
 
 
 def squared_residuals(rendered: Tensor, target: Tensor) -> Tensor:
     """Per-pixel residual (B, 1, h, w): the squared error averaged over the channels."""
     return (rendered - target).pow(2).mean(dim=1, keepdim=True)
-
-
-def box_sum(x: Tensor, size: int, value: float = 0.0) -> Tensor:
-    """The sum of each pixel's ``size`` x ``size`` neighbourhood (B, C, h, w), outside the
-    window padded with ``value``; as two running sums (a box convolution is ten times slower
-    on a CPU for the thousands of small windows of a batch of rays)."""
-    a, b = size // 2, size - 1 - size // 2
-    rows = F.pad(F.pad(x, (a, b, a, b), value=value).cumsum(-1), (1, 0))
-    rows = rows[..., size:] - rows[..., :-size]
-    cols = F.pad(rows.cumsum(-2), (0, 0, 1, 0))
-    return cols[..., size:, :] - cols[..., :-size, :]
 
 
 def neighbourhood_inliers(inlier: Tensor, size: int, threshold: float, known: Tensor | None = None) -> Tensor:
@@ -125,16 +114,16 @@ class ResidualMap:
         return self.residuals.shape[2]
 
     def write(self, view_ids: Tensor, window: Window, residuals: Tensor, step: int) -> None:
-        xs, ys = window.pixel_grid(self.residuals.device)
-        views = view_ids.to(self.residuals.device)[:, None, None]
-        self.residuals[views, ys, xs] = residuals[:, 0].to(self.residuals.dtype)
-        self.seen[views, ys, xs] = step
+        """Keep the residuals (B, 1, h, w) of ``window`` of the views (of a pixel given twice,
+        the later)."""
+        rows, cells = window.last_writes(view_ids, self.height, self.width, self.residuals.device)
+        self.residuals.view(-1)[cells] = residuals.reshape(-1)[rows].to(self.residuals.dtype)
+        self.seen.view(-1)[cells] = step
 
     def read(self, view_ids: Tensor, window: Window, since: int) -> tuple[Tensor, Tensor]:
         """The windows' residuals and whether each is known (seen at step ``since`` or
         later), (B, 1, h, w) each."""
-        xs, ys = window.pixel_grid(self.residuals.device)
-        flat = (view_ids.to(self.residuals.device)[:, None, None] * self.height + ys) * self.width + xs
+        flat = window.table_indices(view_ids, self.height, self.width, self.residuals.device)
         known = (self.seen.view(-1)[flat] >= since)[:, None].to(self.residuals.dtype)
         return self.residuals.view(-1)[flat][:, None], known
 
