@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rainyscape.errors import ConfigError
+
 # OpenGL-style camera axes (x right, y up, looking down -z) <-> OpenCV (x right, y down, z
 # forward): the camera's y and z axes change sign, i.e. columns 1 and 2 of camera-to-world.
 _GL_CV_SIGNS = (1.0, -1.0, -1.0, 1.0)
@@ -105,6 +107,41 @@ class Cameras:
         u = self.fx[:, None] * cam[..., 0] / z + self.cx[:, None]
         v = self.fy[:, None] * cam[..., 1] / z + self.cy[:, None]
         return torch.stack([u, v], -1), z
+
+
+def world_up(c2w: Tensor | np.ndarray) -> Tensor | np.ndarray:
+    """The world's up (3,) as the cameras see it: minus their mean down (OpenCV +y) axis, unit
+    length (a photographer holds the camera upright; a capture's frame has no known up).
+    ``c2w`` (N, 3 or 4, 4), a torch tensor or a numpy array (the same kind comes back).
+    Raises ConfigError when the cameras' down axes cancel out."""
+    up = -c2w[:, :3, 1].mean(0)
+    norm = float(np.linalg.norm(up) if isinstance(up, np.ndarray) else up.norm())
+    if norm < 1e-6:
+        raise ConfigError("the cameras' up axes cancel out: the scene has no common up (for the rain to fall along, for a camera path)")
+    return up / norm
+
+
+def level_up(c2w: Tensor) -> Tensor:
+    """The world's up (3,) for cameras held level (no roll): the unit vector most nearly
+    perpendicular to every camera's x axis (least squares), and of those the nearest to
+    :func:`world_up` where the x axes leave it open (cameras that all face one way). Unlike the
+    mean up it is not tilted by the cameras' pitch: an array looking down at a scene has mean
+    image-up axes leaning towards the scene, its x axes stay horizontal."""
+    mean = world_up(c2w).double()
+    x = c2w[:, :3, 0].double()
+    moments = x.T @ x / len(x)
+    # (M + eps I)^-1 keeps the mean up's part along M's null space and shrinks the rest
+    up = torch.linalg.solve(moments + 1e-6 * torch.eye(3, dtype=moments.dtype, device=moments.device), mean)
+    return (up / up.norm()).to(c2w.dtype)
+
+
+def down_directions(cameras: Cameras, up: Tensor | None = None) -> Tensor:
+    """Per view (N,), the direction (radians in [0, pi), from the image +x axis towards +y, i.e.
+    downwards) along which the world's down (``up`` reversed; default :func:`level_up`) runs
+    through the image centre: where rain falls in each view, up to wind and perspective."""
+    down = -(level_up(cameras.c2w) if up is None else up)
+    d = cameras.c2w[:, :3, :3].transpose(1, 2) @ down  # in each camera's frame
+    return torch.remainder(torch.atan2(cameras.fy * d[:, 1], cameras.fx * d[:, 0]), torch.pi)
 
 
 @dataclass

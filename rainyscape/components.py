@@ -148,10 +148,11 @@ class ImageHead(nn.Module):
         layer; a head predicting an occluding (colour, alpha) layer lays it over instead."""
         return below + layer
 
-    def for_field(self, layer: Tensor, residual: Tensor) -> Tensor:
+    def for_field(self, layer: Tensor, residual: Tensor, view_ids: Tensor) -> Tensor:
         """The part of ``layer`` (B, C, h, w) the field is fitted without: what the terms that
         see the layer detached and a ray field's single rays read (``residual``: the input
-        less the field's render there). The whole layer unless the head narrows it."""
+        less the field's render there; ``view_ids`` (B,): whose views). The whole layer
+        unless the head narrows it."""
         return layer
 
     def callbacks(self) -> list[Callback]:
@@ -341,7 +342,8 @@ class MeasuresRainAngles(Protocol):
 
     def angle_settings(self) -> dict[str, Any]:
         """Keyword arguments of :func:`rainyscape.imaging.angles.estimate_rain_angles`
-        (``bins``, ``threshold``, ``smoothing``, ``kernel``, ``k``: directions per image)."""
+        (``bins``, ``threshold``, ``smoothing``, ``kernel``, ``k``: directions per image,
+        ``max_tilt``: the most the streaks lean from the world's down in the view)."""
 
 
 @runtime_checkable

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from rainyscape.imaging.angles import (angle_difference_deg, bin_centers, estimate_rain_angles,
+from rainyscape.imaging.angles import (angle_difference_deg, bin_centers, estimate_rain_angles, fall_mask,
                                        histogram_peaks, matched_angle_error_deg, orientation_histogram,
                                        residual_streak_angle, streak_angle)
 from rainyscape.testing.streaks import streak_layer, textured_background
@@ -101,3 +101,35 @@ def test_residual_streak_angle_reads_the_brighter_part_of_a_residual():
     angle, valid = residual_streak_angle(residual)
     assert valid.tolist() == [True, False]
     assert angle_difference_deg(math.degrees(float(angle[0])), 75.0) <= 3.0
+
+
+def _streaks_under_a_roofline(seed: int) -> torch.Tensor:
+    """Rain at 80 degrees under stronger horizontal scene edges (a roof, steps): the edges
+    own the histogram's highest peak."""
+    g = torch.Generator().manual_seed(seed)
+    image = streak_layer(64, 80.0, 12, g)
+    image[..., 2::6, :] += 0.8
+    return image.expand(1, 3, 64, 64)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_fall_prior_keeps_scene_edges_across_the_fall_out(seed):
+    image = _streaks_under_a_roofline(seed)
+    free, _ = estimate_rain_angles(image)
+    assert angle_difference_deg(math.degrees(float(streak_angle(free)[0, 0])), 0.0) <= 3.0  # the edges
+    down = torch.tensor([math.pi / 2])  # an upright camera: the world's down runs down the image
+    theta, valid = estimate_rain_angles(image, down=down, max_tilt=45.0)
+    assert valid.all()
+    assert angle_difference_deg(math.degrees(float(streak_angle(theta)[0, 0])), 80.0) <= 3.0
+    # a camera rolled by 90 degrees sees the fall along the image's x axis: the edges are rain-like
+    rolled, _ = estimate_rain_angles(image, down=torch.tensor([0.0]), max_tilt=45.0)
+    assert angle_difference_deg(math.degrees(float(streak_angle(rolled)[0, 0])), 0.0) <= 3.0
+    # 90 degrees: every direction, the paper's estimator
+    assert torch.equal(estimate_rain_angles(image, down=down, max_tilt=90.0)[0], free)
+
+
+def test_fall_mask_by_hand():
+    # 6 bins of 30 degrees: gradient bins centred at 15, 45, ... 165 -> streaks at 105, 135, 165, 15, 45, 75
+    mask = fall_mask(torch.tensor([math.pi / 2, math.radians(170.0)]), 6, 40.0)
+    assert mask.tolist() == [[True, False, False, False, False, True],
+                             [False, True, True, True, False, False]]

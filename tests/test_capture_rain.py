@@ -15,7 +15,8 @@ from rainyscape.comparison.matrix import clean_overrides, has_clean_views
 from rainyscape.dataparsers.transforms_json import TransformsJsonConfig, TransformsJsonParser
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.angles import angle_difference_deg, estimate_rain_angles, streak_angle
-from rainyscape.synth.capture_rain import CaptureRain, add_rain, rain_frame, up_direction
+from rainyscape.cameras import world_up
+from rainyscape.synth.capture_rain import CaptureRain, add_rain, rain_frame
 
 REPO = Path(__file__).resolve().parents[1]
 FERN = next((p for p in (REPO.parent / "shared/data/real/fern", Path("/work/shared/data/real/fern"))
@@ -33,7 +34,7 @@ def _clean_capture(tiny_scene):
 def test_rain_frame_puts_up_against_the_cameras_down_axis():
     c2w = np.tile(np.eye(4), (3, 1, 1))
     c2w[:, :3, :3] = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]])  # camera y (down) = world -z
-    assert np.allclose(up_direction(c2w), [0, 0, 1])
+    assert np.allclose(world_up(c2w), [0, 0, 1])
     rot = rain_frame(c2w)
     assert np.allclose(rot @ rot.T, np.eye(3), atol=1e-9) and np.allclose(rot @ [0, 0, 1], [0, 1, 0])
 

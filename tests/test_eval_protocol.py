@@ -145,6 +145,24 @@ def test_two_direction_rain_is_matched_whichever_direction_dominates():
     assert "rain_angles_true_deg" not in single and single["rain_angle_error_deg"] > 30
 
 
+def test_each_views_rain_is_measured_near_its_own_down():
+    """With the AGR's fall prior evaluation measures a view's predicted rain near that view's
+    down (``view_options``): streaks at 80 degrees under horizontal edges read 80 in view 1
+    (upright) and 0 in view 0 (its down along the image's x)."""
+    from rainyscape.eval.rain_stats import view_rain_stats
+    from rainyscape.eval.views import ViewImages
+    from rainyscape.testing.streaks import streak_layer
+
+    g = torch.Generator().manual_seed(0)
+    rain = streak_layer(64, 80.0, 12, g)
+    rain[..., 2::6, :] += 0.8
+    rain = rain.reshape(1, 64, 64).expand(3, 64, 64)
+    options = {"max_tilt": 45.0, "down": torch.tensor([0.0, math.pi / 2])}
+    found = [view_rain_stats(ViewImages(i, "v", "train", rain, rain, None, rain=rain), options)["rain_angle_deg"]
+             for i in (0, 1)]
+    assert angle_difference_deg(found[0], 0.0) <= 3.0 and angle_difference_deg(found[1], 80.0) <= 3.0
+
+
 def test_the_simulator_records_how_many_directions_its_rain_falls_in(tmp_path, tiny_scene_dir):
     from rainyscape.dataparsers.truth import simulated_rain
 

@@ -143,6 +143,38 @@ def test_agr_logs_streak_angles_per_view():
     assert restored.view_angles == agr.view_angles
 
 
+def test_agr_looks_for_rain_near_each_views_down():
+    """``max_tilt``: of streaks at 80 degrees under stronger horizontal edges, an upright view's
+    AGR finds the streaks and a view rolled by 90 degrees (the world's down along its x axis)
+    the edges; without the prior both find the edges."""
+    from rainyscape.cameras import Cameras
+    from rainyscape.imaging.angles import angle_difference_deg as angle_difference
+    from rainyscape.scene import SceneData
+    from rainyscape.testing.streaks import streak_layer
+
+    g = torch.Generator().manual_seed(0)
+    rain = streak_layer(64, 80.0, 12, g)
+    rain[..., 2::6, :] += 0.8
+    rain = rain.expand(2, 3, 64, 64)
+    c2w = torch.eye(4).repeat(3, 1, 1)  # views 0 and 2 upright, view 1 rolled: its x is the world's down
+    c2w[1, :3, :3] = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    f = torch.full((3,), 50.0)
+    cams = Cameras(c2w, f, f, torch.full((3,), 32.0), torch.full((3,), 32.0), 64, 64)
+    scene = SceneData(name="toy", images=torch.zeros(3, 64, 64, 3, dtype=torch.uint8), cameras=cams,
+                      image_names=["0.png", "1.png", "2.png"], train_indices=[0, 1, 2], eval_indices=[],
+                      near=0.1, far=10.0, scene_box=torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    found = {}
+    for tilt in (45.0, 90.0):
+        agr = AdaptiveGradientRotation(AdaptiveGradientRotation.Config(max_tilt=tilt))
+        agr.setup(scene, torch.device("cpu"))
+        agr(_ctx(torch.zeros_like(rain), rain, rain, view_ids=(0, 1)))
+        found[tilt] = [agr.view_angles[v][0] for v in (0, 1)]
+    assert abs(found[45.0][0] - 80.0) <= 3.0 and angle_difference(found[45.0][1], 0.0) <= 3.0
+    assert all(angle_difference(a, 0.0) <= 3.0 for a in found[90.0])
+    with pytest.raises(ConfigError):
+        AdaptiveGradientRotation(AdaptiveGradientRotation.Config(max_tilt=0.0))
+
+
 def test_agr_gradients_reach_rain_and_render():
     background, rainy, rain, _ = _streak_scene(40.0)
     rendered = background.clone().requires_grad_(True)

@@ -204,9 +204,26 @@ def test_the_field_fits_without_the_streak_shaped_part_of_r_only():
     smear = ((ys == 30) & (xs > 5) & (xs < 40)).float() * 0.4  # horizontal
     rain = (streaks + smear).expand(1, 3, 48, 48)
     residual = streaks.expand(1, 3, 48, 48) + 0.01 * torch.randn(1, 3, 48, 48)
-    assert _head(scene).for_field(rain, residual) is rain
-    kept = _head(scene, field_streaks=2).for_field(rain, residual)[0, 0]
+    assert _head(scene).for_field(rain, residual, torch.tensor([0])) is rain
+    kept = _head(scene, field_streaks=2).for_field(rain, residual, torch.tensor([0]))[0, 0]
     on_streaks, on_smear = streaks > 0, (smear > 0) & (streaks == 0)
     assert float(kept[on_streaks].mean()) > 0.25
     assert float(kept[on_smear].max()) < 0.02
     assert math.isclose(float(kept.clamp_min(0).min()), 0.0, abs_tol=1e-6)
+
+
+def test_the_streak_line_runs_near_the_views_down():
+    """``max_tilt``: where horizontal scene edges outweigh the streaks in the residual, the line
+    still runs along the streaks (the view is upright: the world's down runs down the image)."""
+    scene = _scene(n=1, height=48, width=48)
+    ys, xs = torch.meshgrid(torch.arange(48.0), torch.arange(48.0), indexing="ij")
+    streaks = ((xs % 8 == 3) & (ys % 24 < 14)).float() * 0.3
+    edges = (ys % 4 == 1).float() * 0.5  # the residual's dominant direction: horizontal
+    rain = streaks.expand(1, 3, 48, 48)
+    residual = (streaks + edges).expand(1, 3, 48, 48)
+    view = torch.tensor([0])
+    free = _head(scene, field_streaks=2).for_field(rain, residual, view)[0, 0]
+    prior = _head(scene, field_streaks=2, max_tilt=45.0).for_field(rain, residual, view)[0, 0]
+    on_streaks = streaks > 0
+    assert float(free[on_streaks].mean()) < 0.05  # a horizontal line keeps none of the streaks
+    assert float(prior[on_streaks].mean()) > 0.25

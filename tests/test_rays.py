@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from rainyscape.cameras import Cameras, opengl_to_opencv, pixel_rays
+from rainyscape.errors import ConfigError
+from rainyscape.cameras import Cameras, down_directions, level_up, opengl_to_opencv, pixel_rays, world_up
 from rainyscape.fields.ndc import average_pose, ndc_points, ndc_rays, ndc_to_distance
 
 W, H = 40, 30
@@ -205,3 +206,56 @@ def test_average_pose_is_a_rotation_looking_along_the_mean_axis():
     assert torch.det(rot).item() == pytest.approx(1.0, abs=1e-6)
     assert torch.allclose(avg[:3, 3], torch.tensor([1.0, 0.0, 0.0]))
     assert rot[:, 2] @ torch.nn.functional.normalize(c2w[:, :3, 2].mean(0), dim=0) == pytest.approx(1.0, abs=1e-6)
+
+
+def _look(azimuth_deg: float, pitch_deg: float, roll_deg: float = 0.0) -> torch.Tensor:
+    """OpenCV camera-to-world of a camera turned by ``azimuth`` about the world's +y (up),
+    pitched down by ``pitch`` and rolled by ``roll`` about its optical axis."""
+    a, p, r = (math.radians(v) for v in (azimuth_deg, pitch_deg, roll_deg))
+    yaw = torch.tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+    tilt = torch.tensor([[1, 0, 0], [0, math.cos(p), -math.sin(p)], [0, math.sin(p), math.cos(p)]])
+    spin = torch.tensor([[math.cos(r), -math.sin(r), 0], [math.sin(r), math.cos(r), 0], [0, 0, 1]])
+    flip = torch.diag(torch.tensor([1.0, -1.0, 1.0]))  # OpenCV: y down, so level cameras see +y as image-down
+    c2w = torch.eye(4)
+    c2w[:3, :3] = yaw @ tilt @ flip @ spin
+    return c2w
+
+
+def test_the_worlds_down_in_each_view():
+    """An array looking down at a scene: its mean image-up leans towards the scene, the level
+    cameras' up is the world's; the world's down runs straight down each level view and along
+    the x axis of a view rolled by 90 degrees. Cameras that all face one way keep the mean up."""
+    array = torch.stack([_look(az, 30.0) for az in (-40, -20, 0, 20, 40)])
+    up = torch.tensor([0.0, 1.0, 0.0])
+    assert float(world_up(array) @ up) < 0.95  # tilted by the pitch
+    assert torch.allclose(level_up(array), up, atol=1e-4)
+    assert np.allclose(world_up(array.numpy()), world_up(array).numpy())  # one rule for numpy and torch
+    assert torch.allclose(down_directions(_cameras(array)), torch.full((5,), math.pi / 2), atol=1e-4)
+    rolled = torch.cat([array, _look(10, 30.0, roll_deg=90.0)[None]])
+    down = torch.rad2deg(down_directions(_cameras(rolled)))
+    assert (down[:5] - 90).abs().max() < 5 and min(float(down[5]), 180 - float(down[5])) < 5
+    facing = torch.stack([_look(0, 30.0)] * 3)
+    facing[:, :3, 3] = torch.randn(3, 3)
+    assert torch.allclose(level_up(facing), world_up(facing), atol=1e-4)
+    with pytest.raises(ConfigError):
+        world_up(torch.stack([torch.eye(4), torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))]))
+
+
+def test_the_simulators_rain_falls_along_each_views_down(tiny_scene):
+    """The simulator's rain falls along its world's -y (slanted by the wind); the level cameras'
+    down is nearer each view's streaks than the mean up's in the tiny scene, an array looking
+    down at a street."""
+    from rainyscape.imaging.angles import angle_difference_deg, estimate_rain_angles, streak_angle
+
+    theta, valid = estimate_rain_angles(tiny_scene.rain_layers.permute(0, 3, 1, 2).float().abs())
+    ok = valid[:, 0]
+    found = torch.rad2deg(streak_angle(theta[:, 0]))[ok].tolist()
+    assert len(found) >= len(theta) // 2
+
+    def error(down: torch.Tensor) -> float:
+        return float(np.median([angle_difference_deg(a, b) for a, b in zip(found, torch.rad2deg(down)[ok].tolist())]))
+
+    cams = tiny_scene.cameras
+    level, mean = error(down_directions(cams)), error(down_directions(cams, world_up(cams.c2w)))
+    # the demo preset's wind slants the streaks by 12 degrees; the mean up adds the array's pitch
+    assert level < 15 and mean > level + 3

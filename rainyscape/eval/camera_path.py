@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from rainyscape.cameras import Cameras
+from rainyscape.cameras import Cameras, world_up
 from rainyscape.scene import normalize_poses
 
 
@@ -50,8 +50,7 @@ def spiral_poses(c2w: Tensor, frames: int, turns: float = 1.0) -> Tensor:
     focus = -transform[:3, 3].to(c2w)
     centres = c2w[:, :3, 3]
     mean = centres.mean(0)
-    up = -c2w[:, :3, 1].mean(0)  # average image-up direction
-    up = up / up.norm()
+    up = world_up(c2w)
     view = focus - mean
     view = view / view.norm()
     right = torch.linalg.cross(view, up)

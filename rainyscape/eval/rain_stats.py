@@ -8,6 +8,7 @@ import math
 
 from torch import Tensor
 
+from rainyscape.cameras import down_directions
 from rainyscape.components import MeasuresRainAngles
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.eval.metric_keys import (ANGLE_ERROR, CORRELATION, RAIN_ANGLE, RAIN_ANGLES, RESIDUAL_ANGLE,
@@ -18,12 +19,23 @@ from rainyscape.imaging.angles import estimate_rain_angles, matched_angle_error_
 
 def angle_options(pipeline: Pipeline) -> dict:
     """The angle settings of the run's term that measures rain angles (the AGR loss: its
-    histogram and ``k``, its rain directions per image), so evaluation measures angles as
-    training did; {} (the estimator's defaults) when no term measures them."""
+    histogram and ``k``, its rain directions per image, with ``down``: where the world's down
+    runs in each view), so evaluation measures angles as training did; {} (the estimator's
+    defaults) when no term measures them. :func:`view_options` picks a view's."""
     for _, term in pipeline.losses.values():
         if isinstance(term, MeasuresRainAngles):
-            return term.angle_settings()
+            settings = term.angle_settings()
+            if settings.get("max_tilt", 90.0) < 90.0:
+                settings["down"] = down_directions(pipeline.scene.cameras)
+            return settings
     return {}
+
+
+def view_options(options: dict, index: int) -> dict:
+    """``options`` (:func:`angle_options`) for view ``index``'s images: its own down direction."""
+    if "down" not in options:
+        return options
+    return {**options, "down": options["down"][index:index + 1]}
 
 
 def true_rain_directions(pipeline: Pipeline) -> int:
@@ -60,6 +72,7 @@ def view_rain_stats(v: ViewImages, options: dict, true_directions: int = 1) -> d
     with two, the predicted rain's two strongest are matched to the true rain's two."""
     row: dict = {}
     truth = None
+    options = view_options(options, v.index)
     if v.true_rain is not None and v.split == "train":
         truth = streak_angles_deg(v.true_rain, {**options, "k": max(1, true_directions)})
         row[rain_stat(TRUE_ANGLE).key] = truth[0] if truth else None

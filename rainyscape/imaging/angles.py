@@ -70,16 +70,30 @@ def bin_centers(index: Tensor, bins: int) -> Tensor:
     return (index.to(torch.float32) + 0.5) * (math.pi / bins)
 
 
+def fall_mask(down: Tensor, bins: int, max_tilt: float) -> Tensor:
+    """Which histogram bins (B, bins) hold streaks that run within ``max_tilt`` degrees of each
+    image's ``down`` (B,) (radians, the direction the world's down runs in the image): rain
+    falls, so its streaks lean from the vertical only by the wind (and perspective)."""
+    streaks = streak_angle(bin_centers(torch.arange(bins, device=down.device), bins))
+    tilt = torch.remainder(streaks[None] - down[:, None] + math.pi / 2, math.pi) - math.pi / 2
+    return tilt.abs() <= math.radians(max_tilt)
+
+
 def estimate_rain_angles(residual: Tensor, bins: int = 60, k: int = 1, threshold: float = 0.1,
-                         smoothing: int = 2, separation: int = 2, kernel: str = "scharr"
-                         ) -> tuple[Tensor, Tensor]:
+                         smoothing: int = 2, separation: int = 2, kernel: str = "scharr",
+                         down: Tensor | None = None, max_tilt: float = 90.0) -> tuple[Tensor, Tensor]:
     """Dominant gradient directions theta (B, k) in radians of residual images (B, C, h, w).
 
     ``smoothing`` [1, 2, 1] passes over the histogram before picking peaks (0: raw counts as
-    in the paper). Returns (theta, valid); ``valid`` is False where an image had no gradient
-    above ``threshold`` (or fewer than k distinct peaks).
+    in the paper). With ``down`` (B,) (radians: where the world's down runs in each image,
+    :func:`rainyscape.cameras.down_directions`) and ``max_tilt`` under 90 degrees, only
+    directions whose streaks lean at most ``max_tilt`` from it are candidates (scene edges
+    across the fall, a horizon or a roof, cannot win). Returns (theta, valid); ``valid`` is
+    False where an image had no gradient above ``threshold`` (or fewer than k distinct peaks).
     """
     hist = smooth_histogram(orientation_histogram(residual, bins, threshold, kernel), smoothing)
+    if down is not None and max_tilt < 90.0:
+        hist = hist * fall_mask(down.to(hist.device), bins, max_tilt)
     index, valid = histogram_peaks(hist, k, separation)
     return bin_centers(index, bins).to(residual.device), valid
 
@@ -89,10 +103,12 @@ def streak_angle(theta: Tensor) -> Tensor:
     return torch.remainder(theta + math.pi / 2, math.pi)
 
 
-def residual_streak_angle(residual: Tensor) -> tuple[Tensor, Tensor]:
+def residual_streak_angle(residual: Tensor, down: Tensor | None = None,
+                          max_tilt: float = 90.0) -> tuple[Tensor, Tensor]:
     """The streak direction (B,) of residual images I - B (B, C, h, w), from their brighter
-    part (rain adds light), and whether one was found (B,)."""
-    theta, valid = estimate_rain_angles(residual.clamp_min(0))
+    part (rain adds light), and whether one was found (B,); ``down``, ``max_tilt``: as
+    :func:`estimate_rain_angles`."""
+    theta, valid = estimate_rain_angles(residual.clamp_min(0), down=down, max_tilt=max_tilt)
     return streak_angle(theta[:, 0]), valid[:, 0]
 
 

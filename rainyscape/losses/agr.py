@@ -20,10 +20,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from rainyscape.cameras import down_directions
 from rainyscape.components import Loss, LossContext
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.gradients import GRADIENT_KERNELS, image_gradients, steer
 from rainyscape.imaging.angles import estimate_rain_angles, streak_angle
+from rainyscape.scene import SceneData
 
 
 def mean_abs_derivative(images: Tensor, theta: Tensor, kernel: str = "scharr", gain: float = 1.0) -> Tensor:
@@ -68,6 +70,10 @@ class AdaptiveGradientRotation(Loss):
         # derivative scale: 1 the kernel's Sobel gain (the paper's operator; measured: rain angle
         # error 6.0 vs 8.5 degrees at 1/8, docs/rain.md), 1/8 per pixel (the earlier default)
         gain: float = 1.0
+        # directions whose streaks lean more than this (degrees) from the world's down in the
+        # view are no candidates (rain falls; the world's down as the level cameras see it,
+        # rainyscape.cameras.down_directions); 90: any direction, as the paper
+        max_tilt: float = 90.0
 
     def __init__(self, config: "AdaptiveGradientRotation.Config | None" = None):
         super().__init__(config or self.Config())
@@ -76,21 +82,29 @@ class AdaptiveGradientRotation(Loss):
             raise ConfigError(f"agr.bins must be at least 3, got {c.bins}")
         if c.top_k < 1:
             raise ConfigError(f"agr.top_k must be at least 1, got {c.top_k}")
+        if not 0.0 < c.max_tilt <= 90.0:
+            raise ConfigError(f"agr.max_tilt must be in (0, 90] degrees, got {c.max_tilt}")
         if c.kernel not in GRADIENT_KERNELS:
             raise ConfigError(f"agr.kernel '{c.kernel}' is not one of {', '.join(GRADIENT_KERNELS)}")
         # Last estimated streak direction(s) in degrees, per view id (for reports).
         self.view_angles: dict[int, list[float]] = {}
+        self.down: Tensor | None = None  # per view: where the world's down runs in it (radians)
+
+    def setup(self, scene: SceneData, device: torch.device) -> None:
+        if self.config.max_tilt < 90.0:
+            self.down = down_directions(scene.cameras).to(device)
 
     def angle_settings(self) -> dict:
         """:class:`rainyscape.components.MeasuresRainAngles`: how this term measures angles."""
         c = self.config
         return {"bins": c.bins, "threshold": c.threshold, "smoothing": c.smoothing, "kernel": c.kernel,
-                "k": int(c.top_k)}
+                "k": int(c.top_k), "max_tilt": c.max_tilt}
 
     def estimate(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
         """Gradient directions theta (B, K) of the detached residual I - B, and validity."""
         residual = (ctx.target - ctx.rendered).detach()
-        return estimate_rain_angles(residual, **self.angle_settings())
+        down = None if self.down is None else self.down[ctx.view_ids.to(self.down.device)]
+        return estimate_rain_angles(residual, down=down, **self.angle_settings())
 
     def __call__(self, ctx: LossContext) -> Tensor:
         rain = ctx.rain if ctx.rain is not None else torch.zeros_like(ctx.rendered)

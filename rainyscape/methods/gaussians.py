@@ -91,14 +91,17 @@ def _rainyscape_plus() -> PipelineConfig:
     stays (without it heavy rain stayed in the Gaussians: plaza -0.99 dB on the cpu set), but
     capped, so that it does not blur the scene's strong edges. Rain fixed in 3D is fitted as
     floaters in front of the surface: where the head sees rain, their opacity is lowered
-    (``floater-opacity``, docs/rain.md "A free-space prior for the Gaussians"). On a CPU the
-    head works at the image's resolution (``PLUS_RAIN_HEAD``)."""
+    (``floater-opacity``, docs/rain.md "A free-space prior for the Gaussians"). The rain's
+    direction is looked for near each view's down (``FALL_TILT``). On a CPU the head works at
+    the image's resolution (``PLUS_RAIN_HEAD``)."""
     cfg = _rainyscape_3dgs()
     cfg.method = "rainyscape-plus"
     cfg.rain_head.options.update(PLUS_RAIN_HEAD)
     cfg.losses["multiview-rain"] = LossConfig("mv-rain", weight=MULTIVIEW_RAIN_WEIGHT)  # depth detached inside
     cfg.losses["tv"].options = {"cap": TV_CAP}
     cfg.losses["floater-opacity"] = LossConfig("floater-opacity", weight=FLOATER_WEIGHT)
+    cfg.losses["agr"].options = {**cfg.losses["agr"].options, "max_tilt": FALL_TILT}
+    cfg.rain_head.options["max_tilt"] = FALL_TILT
     return cfg
 
 
@@ -126,6 +129,13 @@ MULTIVIEW_RAIN_WEIGHT = 50.0
 # about five times a pixel's photometric one.
 FLOATER_WEIGHT = 5.0
 
+# Rain falls: the AGR loss and the head's streak line look for the streaks' direction within
+# FALL_TILT degrees of the world's down in each view (rainyscape.cameras.down_directions; the
+# cpu set's wind slants them by up to 30 degrees, perspective by more), so that a view whose
+# residual is ruled by scene edges across the fall (yard's roofs and steps) is not steered
+# along them (docs/rain.md, "Rain falls").
+FALL_TILT = 60.0
+
 rainyscape_3dgs = MethodSpec(
     name="rainyscape-3dgs",
     description="RainyScape on 3D Gaussian Splatting: 3DGS warm-up, then the rain module (authors' loss split)",
@@ -135,7 +145,7 @@ rainyscape_3dgs = MethodSpec(
 
 rainyscape_plus = MethodSpec(
     name="rainyscape-plus",
-    description="rainyscape-3dgs plus multi-view rain evidence (reprojected with the rendered depth) for the rain head, capped TV, a free-space prior against floaters under the rain, and on a CPU a full-resolution rain head whose streaks alone the field is fitted without",
+    description="rainyscape-3dgs plus multi-view rain evidence (reprojected with the rendered depth) for the rain head, capped TV, a free-space prior against floaters under the rain, the rain direction looked for near each view's down, and on a CPU a full-resolution rain head whose streaks alone the field is fitted without",
     config=_rainyscape_plus(),
     gpu=GS_GPU + PAPER_RAIN_HEAD_GPU + PAPER_LATENT_GPU,
 )

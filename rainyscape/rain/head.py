@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from rainyscape.cameras import Cameras, Window
+from rainyscape.cameras import Cameras, Window, down_directions
 from rainyscape.components import Energy, ParamGroup, RainHead
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
@@ -109,6 +109,9 @@ class RainPredictor(RainHead):
         # streak fusion's): what R holds that is not streak-shaped stays the field's to fit.
         # The line must be shorter than the rain's streaks (docs/rain.md). 0: less R, the paper's
         field_streaks: int = bounded(0, 0, 32)
+        # ... in a direction whose streaks lean at most this (degrees) from the world's down in
+        # the view (as the AGR loss's max_tilt; 90: any direction)
+        max_tilt: float = bounded(90.0, above=0.0, hi=90.0)
         # Speed only (outputs agree to float rounding): channels-last convolutions ...
         channels_last: bool = True
         # ... and, opt-in, the CNN in bfloat16 under CUDA autocast (rounding ~1e-2 relative)
@@ -131,6 +134,9 @@ class RainPredictor(RainHead):
         self.scene_state = nn.Parameter(torch.randn(c.scene_dim) * c.latent_std)
         self.view_states = nn.Parameter(torch.randn(n, c.view_dim) * c.latent_std)
         self.register_buffer("camera_vectors", camera_vectors(scene.cameras), persistent=False)
+        # where the world's down runs in each view, for the streak line (only with the prior)
+        down = down_directions(scene.cameras) if c.max_tilt < 90.0 and c.field_streaks > 0 else torch.zeros(n)
+        self.register_buffer("down", down, persistent=False)
 
         # MLP: (s, v_i) and p_i branches summed, a hidden layer, then the latent map.
         self.embed_state = nn.Linear(c.scene_dim + c.view_dim, c.mlp_width)
@@ -172,11 +178,13 @@ class RainPredictor(RainHead):
                         c.latent_noise_steps, c.langevin_step, c.langevin_prior_var, c.latent_patch_size,
                         c.langevin_noise)
 
-    def for_field(self, layer: Tensor, residual: Tensor) -> Tensor:
+    def for_field(self, layer: Tensor, residual: Tensor, view_ids: Tensor) -> Tensor:
         half = self.config.field_streaks
         if half <= 0:
             return layer
-        angle, valid = residual_streak_angle(residual)  # as streak fusion finds it
+        # as streak fusion finds it
+        angle, valid = residual_streak_angle(residual, self.down[view_ids.to(self.down.device)],
+                                             self.config.max_tilt)
         # a window whose residual shows no direction keeps its whole R
         return torch.where(valid[:, None, None, None], line_opening(layer, angle, half), layer)
 

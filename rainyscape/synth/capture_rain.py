@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from rainyscape.cameras import Cameras
+from rainyscape.cameras import Cameras, world_up
 from rainyscape.errors import ConfigError
 from rainyscape.scene import SceneData
 from rainyscape.synth import layout
@@ -74,19 +74,10 @@ class CaptureRain:
         return replace(RainConfig(), **PRESETS[LEVEL_PRESETS[self.level]].rain)
 
 
-def up_direction(c2w: np.ndarray) -> np.ndarray:
-    """The world's up as the cameras see it: minus their mean down (OpenCV +y) axis."""
-    up = -c2w[:, :3, 1].mean(0)
-    norm = np.linalg.norm(up)
-    if norm < 1e-6:
-        raise ConfigError("the cameras' up axes cancel out: no common up for the rain to fall along")
-    return up / norm
-
-
 def rain_frame(c2w: np.ndarray) -> np.ndarray:
     """Rotation (3, 3) from the capture's world to a frame whose +y is up (the simulator's
     convention: rain falls along -y); x and z span the horizontal plane."""
-    y = up_direction(c2w)
+    y = world_up(c2w)
     forward = c2w[:, :3, 2].mean(0)
     forward -= y * (forward @ y)
     if np.linalg.norm(forward) < 1e-6:  # cameras looking straight down: any horizontal axis
