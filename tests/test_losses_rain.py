@@ -171,8 +171,6 @@ def test_agr_looks_for_rain_near_each_views_down():
         found[tilt] = [agr.view_angles[v][0] for v in (0, 1)]
     assert abs(found[45.0][0] - 80.0) <= 3.0 and angle_difference(found[45.0][1], 0.0) <= 3.0
     assert all(angle_difference(a, 0.0) <= 3.0 for a in found[90.0])
-    with pytest.raises(ConfigError):
-        AdaptiveGradientRotation(AdaptiveGradientRotation.Config(max_tilt=0.0))
 
 
 def test_agr_gradients_reach_rain_and_render():

@@ -22,6 +22,7 @@ from torch import Tensor
 
 from rainyscape.cameras import down_directions
 from rainyscape.components import Loss, LossContext
+from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.gradients import GRADIENT_KERNELS, image_gradients, steer
 from rainyscape.imaging.angles import estimate_rain_angles, streak_angle
@@ -73,7 +74,7 @@ class AdaptiveGradientRotation(Loss):
         # directions whose streaks lean more than this (degrees) from the world's down in the
         # view are no candidates (rain falls; the world's down as the level cameras see it,
         # rainyscape.cameras.down_directions); 90: any direction, as the paper
-        max_tilt: float = 90.0
+        max_tilt: float = bounded(90.0, above=0.0, hi=90.0)
 
     def __init__(self, config: "AdaptiveGradientRotation.Config | None" = None):
         super().__init__(config or self.Config())
@@ -82,8 +83,6 @@ class AdaptiveGradientRotation(Loss):
             raise ConfigError(f"agr.bins must be at least 3, got {c.bins}")
         if c.top_k < 1:
             raise ConfigError(f"agr.top_k must be at least 1, got {c.top_k}")
-        if not 0.0 < c.max_tilt <= 90.0:
-            raise ConfigError(f"agr.max_tilt must be in (0, 90] degrees, got {c.max_tilt}")
         if c.kernel not in GRADIENT_KERNELS:
             raise ConfigError(f"agr.kernel '{c.kernel}' is not one of {', '.join(GRADIENT_KERNELS)}")
         # Last estimated streak direction(s) in degrees, per view id (for reports).
