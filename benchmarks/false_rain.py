@@ -1,0 +1,130 @@
+"""Where a rain method's predicted rain falls on dry pixels, what it costs, and whether the
+other views could tell it from rain (the simulator's rain layers, for this diagnosis only).
+
+For a finished rain run (a head that predicts rain) of a scene with clean views and true rain
+layers, over its training views:
+
+- the dry pixels (true rain under 0.02 in every channel) split by the predicted rain R there,
+  each bin's PSNR against the clean view, and with ``--plain RUN_DIR`` the same pixels in a
+  plain field's run of the same scene (e.g. ``3dgs``): where the rain method gains or loses;
+- with ``--dilate``: how much of R a neighbour vote would take away, on the false rain (R >=
+  0.05 on dry pixels more than 2 px from any rain) and on the true rain's pixels. Each
+  pixel is lifted to 3D with the rendered depth and projected into its ``--views`` nearest
+  training views (occlusion-tested, losses/multiview_evidence.py); the vote is the
+  ``--quantile`` over them of their R there, max-pooled over ``--dilate`` pixels. R less the
+  vote is what stays: rain a surface shows in every view is not rain. With ``--decoy S`` the
+  vote is taken against chance: less the same vote with the neighbours' R shifted by S px,
+  averaged over ``--decoy-box`` px (docs/rain.md, "False rain on light rain").
+
+    python benchmarks/false_rain.py RUN_DIR [--plain RUN_DIR] [--dilate 3 5] [--quantile 0 0.5] [--decoy 8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from rainyscape.cameras import Window
+from rainyscape.engine.run import load_run
+from rainyscape.eval.protocol import RAIN_PIXEL
+from rainyscape.eval.views import render_image, view_images
+from rainyscape.losses.multiview_evidence import backproject, neighbour_colours, neighbour_table
+
+BINS = ((0.0, 0.01), (0.01, 0.02), (0.02, 0.05), (0.05, 0.1), (0.1, float("inf")))
+FALSE_RAIN = 0.05  # predicted rain at least this on a dry pixel far from rain is false rain
+
+
+def db(squared_error: float, count: int) -> float:
+    return float("nan") if count == 0 else -10.0 * torch.log10(torch.tensor(squared_error / count)).item()
+
+
+def false_rain(v) -> torch.Tensor:
+    """(H, W) dry pixels more than 2 px from any rain pixel where R >= FALSE_RAIN."""
+    rain = (v.true_rain > RAIN_PIXEL).any(0)
+    far = F.max_pool2d(rain[None, None].float(), 5, 1, 2)[0, 0] == 0
+    return far & (v.rain.amax(0) >= FALSE_RAIN)
+
+
+def vote(rain: torch.Tensor, depth: torch.Tensor, pipeline, view: int, neighbours: torch.Tensor,
+         dilate: int, quantile: float) -> torch.Tensor:
+    """The neighbours' R (3, H, W) at the 3D point each pixel of ``view`` shows (0 where fewer
+    than two neighbours see it): ``rain`` (N, 3, H, W) and ``depth`` (N, 1, H, W) of every view."""
+    cameras = pipeline.scene.cameras
+    pooled = F.max_pool2d(rain, dilate, 1, dilate // 2) if dilate > 1 else rain
+    cam = cameras[[view]]
+    points = backproject(cam, Window.full(cam), depth[view:view + 1])
+    colours, valid = neighbour_colours(points, neighbours[view:view + 1], cameras, pooled, depth)
+    votes = torch.where(valid[:, :, None], colours, torch.full_like(colours, float("nan")))
+    ref = votes.nanquantile(quantile, dim=1)[0]
+    return torch.where((valid.sum(1) >= 2) & torch.isfinite(ref), ref, torch.zeros_like(ref))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run_dir", type=Path)
+    ap.add_argument("--plain", type=Path, help="a plain field's run of the same scene")
+    ap.add_argument("--dilate", type=int, nargs="*", default=[], help="neighbour vote: max-pool sizes")
+    ap.add_argument("--quantile", type=float, nargs="*", default=[0.5], help="neighbour vote: quantiles")
+    ap.add_argument("--views", type=int, default=6, help="neighbour views")
+    ap.add_argument("--decoy", type=int, default=0,
+                    help="vote against chance: less the same vote with the neighbours' R shifted "
+                         "by this many pixels, averaged over --decoy-box pixels (0: no decoy)")
+    ap.add_argument("--decoy-box", type=int, default=15)
+    args = ap.parse_args()
+    pipeline, _ = load_run(args.run_dir, device="cpu")
+    plain = load_run(args.plain, device="cpu")[0] if args.plain else None
+    scene = pipeline.scene
+    if scene.clean_images is None or scene.rain_layers is None or pipeline.rain_head is None:
+        raise SystemExit(f"{args.run_dir}: needs a rain head and a scene with clean views and rain layers")
+    train = list(scene.train_indices)
+    views = {i: view_images(pipeline, i) for i in train}
+    rows = {b: [0.0, 0.0, 0] for b in (*BINS, "false")}  # squared error (method, plain), pixels
+    for i, v in views.items():
+        dry = ~(v.true_rain > RAIN_PIXEL).any(0)
+        r = v.rain.amax(0)
+        err = ((v.rendered - v.clean) ** 2).mean(0)
+        err_plain = ((render_image(plain, i).clamp(0, 1) - v.clean) ** 2).mean(0) if plain else err
+        for b in rows:
+            m = false_rain(v) if b == "false" else dry & (r >= b[0]) & (r < b[1])
+            rows[b][0] += float(err[m].sum()); rows[b][1] += float(err_plain[m].sum()); rows[b][2] += int(m.sum())
+    false = rows.pop("false")
+    dry_count = sum(n for _, _, n in rows.values())
+    print(f"{args.run_dir}: dry pixels by predicted rain R (share of dry pixels: PSNR{', plain run' if plain else ''})")
+    for b, (e, ep, n) in rows.items():
+        tail = f" / {db(ep, n):.2f}" if plain else ""
+        print(f"  R in [{b[0]}, {b[1]}): {100 * n / dry_count:5.1f} %: {db(e, n):.2f}{tail}")
+    total = [sum(r[k] for r in rows.values()) for k in range(2)]
+    print(f"  all dry pixels: {db(total[0], dry_count):.2f}" + (f" / {db(total[1], dry_count):.2f}" if plain else ""))
+    print(f"  false rain (R >= {FALSE_RAIN}, more than 2 px from rain): {100 * false[2] / dry_count:.1f} %: "
+          f"{db(false[0], false[2]):.2f}" + (f" / {db(false[1], false[2]):.2f}" if plain else ""))
+    if not args.dilate:
+        return
+    rain = torch.zeros(scene.num_images, 3, scene.height, scene.width)
+    depth = torch.full((scene.num_images, 1, scene.height, scene.width), float("nan"))
+    for i, v in views.items():
+        rain[i], depth[i] = v.rain, v.depth
+    neighbours = neighbour_table(scene.cameras.centers, train, args.views)
+    print("neighbour vote: share of R that stays on false rain / on the true rain's pixels")
+    for dilate, q in itertools.product(args.dilate, args.quantile):
+        kept = {"false": [0.0, 0.0], "true": [0.0, 0.0]}
+        for i, v in views.items():
+            found = vote(rain, depth, pipeline, i, neighbours, dilate, q)
+            if args.decoy:
+                shifted = torch.roll(rain, (args.decoy, args.decoy), (2, 3))
+                chance = vote(shifted, depth, pipeline, i, neighbours, dilate, q)
+                k = args.decoy_box
+                found = (found - F.avg_pool2d(chance[None], k, 1, k // 2, count_include_pad=False)[0]).clamp_min(0)
+            stays = (v.rain - found).clamp_min(0).amax(0)
+            r = v.rain.amax(0)
+            for key, m in (("false", false_rain(v)), ("true", (v.true_rain > RAIN_PIXEL).any(0))):
+                kept[key][0] += float(r[m].sum()); kept[key][1] += float(stays[m].sum())
+        share = {k: a[1] / a[0] if a[0] else float("nan") for k, a in kept.items()}
+        print(f"  dilate {dilate}, quantile {q}: {share['false']:.2f} / {share['true']:.2f}")
+
+
+if __name__ == "__main__":
+    main()
