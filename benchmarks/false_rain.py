@@ -83,6 +83,7 @@ def main() -> None:
     train = list(scene.train_indices)
     views = {i: view_images(pipeline, i) for i in train}
     rows = {b: [0.0, 0.0, 0] for b in (*BINS, "false")}  # squared error (method, plain), pixels
+    darker = 0.0  # the render less the clean view, summed over the false rain's pixels
     for i, v in views.items():
         dry = ~(v.true_rain > RAIN_PIXEL).any(0)
         r = v.rain.amax(0)
@@ -91,6 +92,7 @@ def main() -> None:
         for b in rows:
             m = false_rain(v) if b == "false" else dry & (r >= b[0]) & (r < b[1])
             rows[b][0] += float(err[m].sum()); rows[b][1] += float(err_plain[m].sum()); rows[b][2] += int(m.sum())
+        darker += float((v.rendered - v.clean).mean(0)[false_rain(v)].sum())
     false = rows.pop("false")
     dry_count = sum(n for _, _, n in rows.values())
     print(f"{args.run_dir}: dry pixels by predicted rain R (share of dry pixels: PSNR{', plain run' if plain else ''})")
@@ -100,7 +102,8 @@ def main() -> None:
     total = [sum(r[k] for r in rows.values()) for k in range(2)]
     print(f"  all dry pixels: {db(total[0], dry_count):.2f}" + (f" / {db(total[1], dry_count):.2f}" if plain else ""))
     print(f"  false rain (R >= {FALSE_RAIN}, more than 2 px from rain): {100 * false[2] / dry_count:.1f} %: "
-          f"{db(false[0], false[2]):.2f}" + (f" / {db(false[1], false[2]):.2f}" if plain else ""))
+          f"{db(false[0], false[2]):.2f}" + (f" / {db(false[1], false[2]):.2f}" if plain else "")
+          + f", render - clean {darker / max(false[2], 1):+.3f}")
     if not args.dilate:
         return
     rain = torch.zeros(scene.num_images, 3, scene.height, scene.width)
