@@ -49,11 +49,10 @@ def false_rain(v) -> torch.Tensor:
     return far & (v.rain.amax(0) >= FALSE_RAIN)
 
 
-def vote(rain: torch.Tensor, depth: torch.Tensor, pipeline, view: int, neighbours: torch.Tensor,
+def vote(rain: torch.Tensor, depth: torch.Tensor, cameras, view: int, neighbours: torch.Tensor,
          dilate: int, quantile: float) -> torch.Tensor:
     """The neighbours' R (3, H, W) at the 3D point each pixel of ``view`` shows (0 where fewer
     than two neighbours see it): ``rain`` (N, 3, H, W) and ``depth`` (N, 1, H, W) of every view."""
-    cameras = pipeline.scene.cameras
     pooled = F.max_pool2d(rain, dilate, 1, dilate // 2) if dilate > 1 else rain
     cam = cameras[[view]]
     points = backproject(cam, Window.full(cam), depth[view:view + 1])
@@ -89,10 +88,11 @@ def main() -> None:
         r = v.rain.amax(0)
         err = ((v.rendered - v.clean) ** 2).mean(0)
         err_plain = ((render_image(plain, i).clamp(0, 1) - v.clean) ** 2).mean(0) if plain else err
+        false_pixels = false_rain(v)
         for b in rows:
-            m = false_rain(v) if b == "false" else dry & (r >= b[0]) & (r < b[1])
+            m = false_pixels if b == "false" else dry & (r >= b[0]) & (r < b[1])
             rows[b][0] += float(err[m].sum()); rows[b][1] += float(err_plain[m].sum()); rows[b][2] += int(m.sum())
-        darker += float((v.rendered - v.clean).mean(0)[false_rain(v)].sum())
+        darker += float((v.rendered - v.clean).mean(0)[false_pixels].sum())
     false = rows.pop("false")
     dry_count = sum(n for _, _, n in rows.values())
     print(f"{args.run_dir}: dry pixels by predicted rain R (share of dry pixels: PSNR{', plain run' if plain else ''})")
@@ -115,10 +115,10 @@ def main() -> None:
     for dilate, q in itertools.product(args.dilate, args.quantile):
         kept = {"false": [0.0, 0.0], "true": [0.0, 0.0]}
         for i, v in views.items():
-            found = vote(rain, depth, pipeline, i, neighbours, dilate, q)
+            found = vote(rain, depth, scene.cameras, i, neighbours, dilate, q)
             if args.decoy:
                 shifted = torch.roll(rain, (args.decoy, args.decoy), (2, 3))
-                chance = vote(shifted, depth, pipeline, i, neighbours, dilate, q)
+                chance = vote(shifted, depth, scene.cameras, i, neighbours, dilate, q)
                 k = args.decoy_box
                 found = (found - F.avg_pool2d(chance[None], k, 1, k // 2, count_include_pad=False)[0]).clamp_min(0)
             stays = (v.rain - found).clamp_min(0).amax(0)
