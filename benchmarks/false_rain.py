@@ -33,6 +33,7 @@ from rainyscape.engine.run import load_run
 from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image, view_images
 from rainyscape.losses.multiview_evidence import backproject, neighbour_colours, neighbour_table
+from rainyscape.postprocess.fusion import rain_mask
 
 BINS = ((0.0, 0.01), (0.01, 0.02), (0.02, 0.05), (0.05, 0.1), (0.1, float("inf")))
 FALSE_RAIN = 0.05  # predicted rain at least this on a dry pixel far from rain is false rain
@@ -42,18 +43,21 @@ def db(squared_error: float, count: int) -> float:
     return float("nan") if count == 0 else -10.0 * torch.log10(torch.tensor(squared_error / count)).item()
 
 
+def wet(v) -> torch.Tensor:
+    """(H, W) the true rain's pixels."""
+    return rain_mask(v.true_rain, RAIN_PIXEL, 0)[0]
+
+
 def false_rain(v) -> torch.Tensor:
     """(H, W) dry pixels more than 2 px from any rain pixel where R >= FALSE_RAIN."""
-    rain = (v.true_rain > RAIN_PIXEL).any(0)
-    far = F.max_pool2d(rain[None, None].float(), 5, 1, 2)[0, 0] == 0
-    return far & (v.rain.amax(0) >= FALSE_RAIN)
+    return ~rain_mask(v.true_rain, RAIN_PIXEL, 2)[0] & (v.rain.amax(0) >= FALSE_RAIN)
 
 
-def vote(rain: torch.Tensor, depth: torch.Tensor, cameras, view: int, neighbours: torch.Tensor,
-         dilate: int, quantile: float) -> torch.Tensor:
+def vote(pooled: torch.Tensor, depth: torch.Tensor, cameras, view: int, neighbours: torch.Tensor,
+         quantile: float) -> torch.Tensor:
     """The neighbours' R (3, H, W) at the 3D point each pixel of ``view`` shows (0 where fewer
-    than two neighbours see it): ``rain`` (N, 3, H, W) and ``depth`` (N, 1, H, W) of every view."""
-    pooled = F.max_pool2d(rain, dilate, 1, dilate // 2) if dilate > 1 else rain
+    than two neighbours see it): ``pooled`` (N, 3, H, W) every view's R, max-pooled, and
+    ``depth`` (N, 1, H, W) every view's rendered depth."""
     cam = cameras[[view]]
     points = backproject(cam, Window.full(cam), depth[view:view + 1])
     colours, valid = neighbour_colours(points, neighbours[view:view + 1], cameras, pooled, depth)
@@ -84,7 +88,7 @@ def main() -> None:
     rows = {b: [0.0, 0.0, 0] for b in (*BINS, "false")}  # squared error (method, plain), pixels
     darker = 0.0  # the render less the clean view, summed over the false rain's pixels
     for i, v in views.items():
-        dry = ~(v.true_rain > RAIN_PIXEL).any(0)
+        dry = ~wet(v)
         r = v.rain.amax(0)
         err = ((v.rendered - v.clean) ** 2).mean(0)
         err_plain = ((render_image(plain, i).clamp(0, 1) - v.clean) ** 2).mean(0) if plain else err
@@ -113,17 +117,19 @@ def main() -> None:
     neighbours = neighbour_table(scene.cameras.centers, train, args.views)
     print("neighbour vote: share of R that stays on false rain / on the true rain's pixels")
     for dilate, q in itertools.product(args.dilate, args.quantile):
+        def pool(r: torch.Tensor) -> torch.Tensor:
+            return F.max_pool2d(r, dilate, 1, dilate // 2) if dilate > 1 else r
+        pooled, shifted = pool(rain), pool(torch.roll(rain, (args.decoy, args.decoy), (2, 3)))
         kept = {"false": [0.0, 0.0], "true": [0.0, 0.0]}
         for i, v in views.items():
-            found = vote(rain, depth, scene.cameras, i, neighbours, dilate, q)
+            found = vote(pooled, depth, scene.cameras, i, neighbours, q)
             if args.decoy:
-                shifted = torch.roll(rain, (args.decoy, args.decoy), (2, 3))
-                chance = vote(shifted, depth, scene.cameras, i, neighbours, dilate, q)
+                chance = vote(shifted, depth, scene.cameras, i, neighbours, q)
                 k = args.decoy_box
                 found = (found - F.avg_pool2d(chance[None], k, 1, k // 2, count_include_pad=False)[0]).clamp_min(0)
             stays = (v.rain - found).clamp_min(0).amax(0)
             r = v.rain.amax(0)
-            for key, m in (("false", false_rain(v)), ("true", (v.true_rain > RAIN_PIXEL).any(0))):
+            for key, m in (("false", false_rain(v)), ("true", wet(v))):
                 kept[key][0] += float(r[m].sum()); kept[key][1] += float(stays[m].sum())
         share = {k: a[1] / a[0] if a[0] else float("nan") for k, a in kept.items()}
         print(f"  dilate {dilate}, quantile {q}: {share['false']:.2f} / {share['true']:.2f}")
