@@ -7,16 +7,16 @@ rs-bench runs every cell in a fresh interpreter, so the oracle is put in place b
 ``sitecustomize`` module on ``PYTHONPATH``, switched on by the environment (unset: nothing
 changes):
 
-- ``RS_ORACLE_MASK=T`` (with ``RS_ORACLE_DILATE=N``, 3 by default): a plain field's ``l1-ssim`` term
-  leaves out the pixels where the true rain exceeds T (dilated by N px): its L1 and its SSIM
-  map are averaged over the other pixels only. The SSIM windows of the kept pixels next to
+- ``RS_ORACLE_MASK=T`` (with ``RS_ORACLE_DILATE=N``, 1 by default): a plain field's ``l1-ssim`` term
+  leaves out the pixels where the true rain exceeds T, grown by N px (its ``pixel_weights``):
+  its L1 and its SSIM map are averaged over the other pixels only. The SSIM windows of the kept pixels next to
   a streak still see it; with ``losses.photometric.ssim_weight=0`` the mask is exact.
 - ``RS_ORACLE_RAIN=S``: the rain head's output is S times the true rain layer of the window
   (1: the true rain; less: a head that finds every streak but only that share of its
   amount). The head's parameters stay in the graph at weight 0, so its optimiser and latent
   updates run.
 - ``RS_ORACLE_RAIN_WHERE=T`` (with ``RS_ORACLE_DILATE``): the rain head predicts as it was
-  trained to, and its output is kept only where the true rain exceeds T (dilated): a head
+  trained to, and its output is kept only where the true rain exceeds T (grown likewise): a head
   with no false rain and its own amount on the rain.
 
     RS_ORACLE_MASK=0.02 PYTHONPATH=benchmarks/oracles rs-bench methods=3dgs scenes=... \\
@@ -30,9 +30,10 @@ import os
 
 if os.environ.get("RS_ORACLE_MASK") or os.environ.get("RS_ORACLE_RAIN") or os.environ.get("RS_ORACLE_RAIN_WHERE"):
     import torch
-    import torch.nn.functional as F
 
     import rainyscape.engine.pipeline as _pipeline
+    from rainyscape.engine.sampling import window_values
+    from rainyscape.postprocess.fusion import rain_mask
 
     _scene = {}
     _build = _pipeline.build_pipeline
@@ -48,36 +49,26 @@ if os.environ.get("RS_ORACLE_MASK") or os.environ.get("RS_ORACLE_RAIN") or os.en
         layers = _scene["scene"].rain_layers
         if layers is None:
             raise SystemExit("oracle: the scene has no rain layers (a simulated scene is needed)")
-        crops = [layers[v, y:y + window.height, x:x + window.width].permute(2, 0, 1)
-                 for v, y, x in zip(view_ids.tolist(), window.y0.tolist(), window.x0.tolist())]
-        return torch.stack(crops).float().to(device)
+        return window_values(layers, view_ids, window).float().to(device)
 
     def _wet(view_ids, window, device, threshold):
-        """(B, 1, h, w) 1 where the true rain exceeds ``threshold``, dilated."""
-        wet = (_true_rain(view_ids, window, device).amax(1, keepdim=True) > threshold).float()
-        dilate = int(os.environ.get("RS_ORACLE_DILATE", "3"))
-        return F.max_pool2d(wet, dilate, 1, dilate // 2) if dilate > 1 else wet
+        """(B, 1, h, w) 1 where the true rain exceeds ``threshold``, grown by RS_ORACLE_DILATE px."""
+        grow = int(os.environ.get("RS_ORACLE_DILATE", "1"))
+        rain = _true_rain(view_ids, window, device)
+        return torch.stack([rain_mask(r, threshold, grow) for r in rain]).float()
 
 if os.environ.get("RS_ORACLE_MASK"):
     import rainyscape.losses.l1_ssim as _l1_ssim
 
     _threshold = float(os.environ["RS_ORACLE_MASK"])
+    _weights = _l1_ssim.L1SSIM.pixel_weights
 
-    _plain_call = _l1_ssim.L1SSIM.__call__
-
-    def _masked_l1_ssim(self, ctx):
+    def _dry_pixels(self, ctx):
         if self.config.with_rain:  # a rain method's term: the oracle is for plain fields
-            return _plain_call(self, ctx)
-        keep = 1.0 - _wet(ctx.view_ids, ctx.window, ctx.target.device, _threshold)
-        w = self.config.ssim_weight
-        l1 = ((ctx.rendered - ctx.target).abs() * keep).mean()
-        self.metrics = {"l1": float(l1.detach())}
-        loss = (1.0 - w) * l1
-        if w > 0:
-            loss = loss + w * (1.0 - (_l1_ssim.ssim_map(ctx.rendered, ctx.target, padding="same") * keep).mean())
-        return loss
+            return _weights(self, ctx)
+        return 1.0 - _wet(ctx.view_ids, ctx.window, ctx.target.device, _threshold)
 
-    _l1_ssim.L1SSIM.__call__ = _masked_l1_ssim
+    _l1_ssim.L1SSIM.pixel_weights = _dry_pixels
 
 if os.environ.get("RS_ORACLE_RAIN"):
     import rainyscape.rain.head as _head

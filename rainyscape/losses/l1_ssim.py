@@ -48,9 +48,7 @@ class L1SSIM(Loss):
         w = self.config.ssim_weight
         use_rain = self.config.with_rain and ctx.rain is not None
         pred = ctx.rendered + ctx.rain if use_rain else ctx.rendered
-        # Per-pixel weights that leave predicted rain out (None: every pixel counts).
-        exclusion = self.config.rain_exclusion if use_rain else 0.0
-        keep = dry_weight(ctx.rain, exclusion) if exclusion > 0 else None
+        keep = self.pixel_weights(ctx)
         l1 = _mean((pred - ctx.target).abs(), keep)
         loss = (1.0 - w) * l1
         self.metrics = {"l1": float(l1.detach())}
@@ -64,6 +62,13 @@ class L1SSIM(Loss):
                 anchor = anchor * dry_weight(ctx.rain, self.config.anchor_scale)
             loss = loss + (1.0 - w) * _mean(anchor, keep)
         return loss
+
+    def pixel_weights(self, ctx: LossContext) -> Tensor | None:
+        """Per-pixel weights of every term (B, 1, h, w), or None: every pixel counts.
+        With ``rain_exclusion`` they leave the predicted rain out (benchmarks/oracles puts the
+        true rain's pixels here)."""
+        exclusion = self.config.rain_exclusion if self.config.with_rain and ctx.rain is not None else 0.0
+        return dry_weight(ctx.rain, exclusion) if exclusion > 0 else None
 
 
 def _mean(values: Tensor, weights: Tensor | None) -> Tensor:
