@@ -212,9 +212,28 @@ def test_the_field_fits_without_the_streak_shaped_part_of_r_only():
     assert math.isclose(float(kept.clamp_min(0).min()), 0.0, abs_tol=1e-6)
 
 
-def test_the_streak_line_runs_near_the_views_down():
-    """``max_tilt``: where horizontal scene edges outweigh the streaks in the residual, the line
-    still runs along the streaks (the view is upright: the world's down runs down the image)."""
+
+def test_the_field_fits_without_r_minus_what_runs_across_the_streaks():
+    """``field_across``: the smear across the streaks (detail taken for rain) is left to the
+    field, and short drops stay subtracted with the streaks, where ``field_streaks`` of the
+    same length gives them to the field."""
+    scene = _scene(n=1, height=48, width=48)
+    ys, xs = torch.meshgrid(torch.arange(48.0), torch.arange(48.0), indexing="ij")
+    streaks = ((xs % 8 == 3) & (ys % 24 < 14)).float() * 0.3
+    drops = ((xs % 8 == 7) & (ys % 12 == 5)).float() * 0.3  # 1 px drops
+    smear = ((ys == 20) & (xs > 5) & (xs < 40)).float() * 0.4  # between the streaks
+    rain = (streaks + drops + smear).expand(1, 3, 48, 48)
+    residual = streaks.expand(1, 3, 48, 48) + 0.01 * torch.randn(1, 3, 48, 48)
+    view = torch.tensor([0])
+    across = _head(scene, field_across=2).for_field(rain, residual, view)[0, 0]
+    along = _head(scene, field_streaks=2).for_field(rain, residual, view)[0, 0]
+    assert float(across[streaks > 0].min()) > 0.29
+    assert float(across[drops > 0].min()) > 0.29 and float(along[drops > 0].max()) < 0.01
+    assert float(across[smear > 0].max()) < 0.05  # the estimated direction is a few degrees off
+
+def test_the_fields_lines_run_near_the_views_down():
+    """``max_tilt``: where horizontal scene edges outweigh the streaks in the residual, the lines
+    still run along the streaks (or across them) (the view is upright: the world's down runs down the image)."""
     scene = _scene(n=1, height=48, width=48)
     ys, xs = torch.meshgrid(torch.arange(48.0), torch.arange(48.0), indexing="ij")
     streaks = ((xs % 8 == 3) & (ys % 24 < 14)).float() * 0.3
@@ -222,8 +241,10 @@ def test_the_streak_line_runs_near_the_views_down():
     rain = streaks.expand(1, 3, 48, 48)
     residual = (streaks + edges).expand(1, 3, 48, 48)
     view = torch.tensor([0])
-    free = _head(scene, field_streaks=2).for_field(rain, residual, view)[0, 0]
-    prior = _head(scene, field_streaks=2, max_tilt=45.0).for_field(rain, residual, view)[0, 0]
     on_streaks = streaks > 0
-    assert float(free[on_streaks].mean()) < 0.05  # a horizontal line keeps none of the streaks
-    assert float(prior[on_streaks].mean()) > 0.25
+    for shape in ("field_streaks", "field_across"):
+        free = _head(scene, **{shape: 2}).for_field(rain, residual, view)[0, 0]
+        prior = _head(scene, **{shape: 2}, max_tilt=45.0).for_field(rain, residual, view)[0, 0]
+        # along a horizontal line, or across it, the field is fitted without none of the streaks
+        assert float(free[on_streaks].mean()) < 0.05, shape
+        assert float(prior[on_streaks].mean()) > 0.25, shape

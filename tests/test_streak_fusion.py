@@ -14,7 +14,7 @@ from rainyscape.engine.pipeline import Pipeline, build_pipeline
 from rainyscape.errors import ConfigError
 from rainyscape.eval.protocol import evaluate_pipeline
 from rainyscape.imaging.metrics import psnr
-from rainyscape.imaging.streaks import line_mean, line_opening
+from rainyscape.imaging.streaks import across_opening, line_mean, line_opening
 from rainyscape.postprocess.fusion import rain_mask, robust_threshold
 from rainyscape.postprocess.streak_fusion import StreakFusion, streak_mask
 from _eval_fixtures import OracleField, make_scene
@@ -49,6 +49,22 @@ def test_line_opening_keeps_what_runs_along_the_line_and_removes_the_rest():
     opened = line_opening(tilted, torch.tensor([math.pi / 2]), 2)
     assert bool((opened <= tilted + 1e-6).all())
     assert float(opened.sum() / tilted.sum()) > 0.5
+
+
+def test_across_opening_keeps_edges_across_the_direction_and_removes_streaks_and_dots():
+    image = torch.zeros(1, 1, 24, 24)
+    image[0, 0, 2:20, 6] = 1.0  # a vertical streak, along the direction
+    image[0, 0, 12, 10:22] = 0.6  # a horizontal edge, across it
+    for i in range(8):  # a diagonal edge, 45 degrees off it
+        image[0, 0, 14 + i, 10 + i] = 0.5
+    image[0, 0, 4, 16] = 0.8  # a dot
+    across = across_opening(image, torch.tensor([math.pi / 2]), 2)[0, 0]
+    assert float(across[2:20, 6].max()) < 1e-6 and float(across[4, 16]) < 1e-6
+    assert torch.allclose(across[12, 11:21], torch.full((10,), 0.6), atol=1e-5)
+    # a 1 px diagonal falls between the bilinear samples of its own line: half its level
+    assert float(across[15:21, 11:17].diagonal().min()) > 0.15
+    assert float(across[16:20, 12:16].diagonal().min()) > 0.25
+    assert bool((across <= image + 1e-6).all())
 
 
 def _streaks(h: int, w: int, angle_deg: float, period: float, seed: int) -> torch.Tensor:

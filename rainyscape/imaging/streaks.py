@@ -7,6 +7,7 @@ Pure functions on tensors.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from functools import reduce
 
@@ -47,3 +48,14 @@ def line_opening(images: Tensor, angle: Tensor, half_length: int) -> Tensor:
     cut back to their own level."""
     eroded = reduce(torch.minimum, line_samples(images, angle, half_length))
     return torch.minimum(reduce(torch.maximum, line_samples(eroded, angle, half_length)), images)
+
+
+def across_opening(images: Tensor, angle: Tensor, half_length: int, directions: int = 3) -> Tensor:
+    """What of (B, C, h, w) ``images`` runs at least 2 ``half_length`` + 1 pixels in some
+    direction across ``angle`` (B,) radians: the largest of the :func:`line_opening` of
+    ``directions`` lines spread evenly between ``angle`` and ``angle`` + pi (both excluded).
+    A streak along ``angle`` and a dot shorter than the line are removed; an edge that runs
+    across, and a blob wider than the line, keep their level."""
+    step = math.pi / (directions + 1)
+    return reduce(torch.maximum, (line_opening(images, angle + k * step, half_length)
+                                  for k in range(1, directions + 1)))

@@ -109,10 +109,11 @@ def _rainyscape_plus() -> PipelineConfig:
 # half resolution with one: streaks at the CPU recipe's 128 to 240 px are 1 to 2 px wide, and
 # the half-resolution map recovered a third to a half of each. The wider head also takes
 # detail the Gaussians have not fitted yet (fern's light rain -0.60 dB), so the field is
-# fitted without only the part of R a 3 px line along the streaks keeps (docs/rain.md, "The
-# rain head at full resolution in rainyscape-plus"). The GPU recipe keeps the paper's head
-# at paper-scale images (not measured there).
-PLUS_RAIN_HEAD = {"upscale": 1, "latent_channels": 4, "field_streaks": 1}
+# fitted without R less what runs across the streaks in 5 px lines: a leaf's edge stays the
+# field's, a drop too short for a line along the streaks is still subtracted (docs/rain.md,
+# "The field fitted without R less what runs across the rain"). The GPU recipe keeps the
+# paper's head at paper-scale images (not measured there).
+PLUS_RAIN_HEAD = {"upscale": 1, "latent_channels": 4, "field_across": 2}
 PAPER_LATENT_GPU = ["rain_head.upscale=2", "rain_head.latent_channels=1"]
 
 # TV on B that leaves steps above TV_CAP alone: the scene's strong edges stay sharp where the
@@ -129,7 +130,7 @@ MULTIVIEW_RAIN_WEIGHT = 50.0
 # about five times a pixel's photometric one.
 FLOATER_WEIGHT = 5.0
 
-# Rain falls: the AGR loss and the head's streak line look for the streaks' direction within
+# Rain falls: the AGR loss and the head's lines for the field look for the streaks' direction within
 # FALL_TILT degrees of the world's down in each view (rainyscape.cameras.down_directions; the
 # cpu set's wind slants them by up to 30 degrees, perspective by more), so that a view whose
 # residual is ruled by scene edges across the fall (yard's roofs and steps) is not steered
@@ -145,7 +146,7 @@ rainyscape_3dgs = MethodSpec(
 
 rainyscape_plus = MethodSpec(
     name="rainyscape-plus",
-    description="rainyscape-3dgs plus multi-view rain evidence (reprojected with the rendered depth) for the rain head, capped TV, a free-space prior against floaters under the rain, the rain direction looked for near each view's down, and on a CPU a full-resolution rain head whose streaks alone the field is fitted without",
+    description="rainyscape-3dgs plus multi-view rain evidence (reprojected with the rendered depth) for the rain head, capped TV, a free-space prior against floaters under the rain, the rain direction looked for near each view's down, and on a CPU a full-resolution rain head whose R the field is fitted without, less the edges that run across the rain",
     config=_rainyscape_plus(),
     gpu=GS_GPU + PAPER_RAIN_HEAD_GPU + PAPER_LATENT_GPU,
 )

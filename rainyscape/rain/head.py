@@ -36,7 +36,7 @@ from rainyscape.components import Energy, ParamGroup, RainHead
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.angles import residual_streak_angle
-from rainyscape.imaging.streaks import line_opening
+from rainyscape.imaging.streaks import across_opening, line_opening
 from rainyscape.rain.langevin import langevin_update
 from rainyscape.scene import SceneData
 
@@ -109,6 +109,11 @@ class RainPredictor(RainHead):
         # streak fusion's): what R holds that is not streak-shaped stays the field's to fit.
         # The line must be shorter than the rain's streaks (docs/rain.md). 0: less R, the paper's
         field_streaks: int = bounded(0, 0, 32)
+        # ... or to the input less what is left of R once what it holds along lines of 2 n + 1
+        # pixels across the streaks is taken out (imaging/streaks.py's across_opening): an edge
+        # the head took for rain stays the field's, a drop shorter than the line is still
+        # subtracted. 0: off. With field_streaks too, the rest is then opened along the streaks.
+        field_across: int = bounded(0, 0, 32)
         # ... in a direction whose streaks lean at most this (degrees) from the world's down in
         # the view (as the AGR loss's max_tilt; 90: any direction)
         max_tilt: float = bounded(90.0, above=0.0, hi=90.0)
@@ -134,8 +139,9 @@ class RainPredictor(RainHead):
         self.scene_state = nn.Parameter(torch.randn(c.scene_dim) * c.latent_std)
         self.view_states = nn.Parameter(torch.randn(n, c.view_dim) * c.latent_std)
         self.register_buffer("camera_vectors", camera_vectors(scene.cameras), persistent=False)
-        # where the world's down runs in each view, for the streak line (only with the prior)
-        down = down_directions(scene.cameras) if c.max_tilt < 90.0 and c.field_streaks > 0 else torch.zeros(n)
+        # where the world's down runs in each view, for the field's lines (only with the prior)
+        shaped = c.field_streaks > 0 or c.field_across > 0
+        down = down_directions(scene.cameras) if c.max_tilt < 90.0 and shaped else torch.zeros(n)
         self.register_buffer("down", down, persistent=False)
 
         # MLP: (s, v_i) and p_i branches summed, a hidden layer, then the latent map.
@@ -179,14 +185,19 @@ class RainPredictor(RainHead):
                         c.langevin_noise)
 
     def for_field(self, layer: Tensor, residual: Tensor, view_ids: Tensor) -> Tensor:
-        half = self.config.field_streaks
-        if half <= 0:
+        c = self.config
+        if c.field_streaks <= 0 and c.field_across <= 0:
             return layer
         # as streak fusion finds it
         angle, valid = residual_streak_angle(residual, self.down[view_ids.to(self.down.device)],
-                                             self.config.max_tilt)
+                                             c.max_tilt)
+        shaped = layer
+        if c.field_across > 0:
+            shaped = shaped - across_opening(shaped, angle, c.field_across)
+        if c.field_streaks > 0:
+            shaped = line_opening(shaped, angle, c.field_streaks)
         # a window whose residual shows no direction keeps its whole R
-        return torch.where(valid[:, None, None, None], line_opening(layer, angle, half), layer)
+        return torch.where(valid[:, None, None, None], shaped, layer)
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config
