@@ -212,7 +212,6 @@ def test_the_field_fits_without_the_streak_shaped_part_of_r_only():
     assert math.isclose(float(kept.clamp_min(0).min()), 0.0, abs_tol=1e-6)
 
 
-
 def test_the_field_fits_without_r_minus_what_runs_across_the_streaks():
     """``field_across``: the smear across the streaks (detail taken for rain) is left to the
     field, and short drops stay subtracted with the streaks, where ``field_streaks`` of the
@@ -231,9 +230,11 @@ def test_the_field_fits_without_r_minus_what_runs_across_the_streaks():
     assert float(across[drops > 0].min()) > 0.29 and float(along[drops > 0].max()) < 0.01
     assert float(across[smear > 0].max()) < 0.05  # the estimated direction is a few degrees off
 
+
 def test_the_fields_lines_run_near_the_views_down():
     """``max_tilt``: where horizontal scene edges outweigh the streaks in the residual, the lines
-    still run along the streaks (or across them) (the view is upright: the world's down runs down the image)."""
+    still run along the streaks, or across them (the view is upright: the world's down runs
+    down the image)."""
     scene = _scene(n=1, height=48, width=48)
     ys, xs = torch.meshgrid(torch.arange(48.0), torch.arange(48.0), indexing="ij")
     streaks = ((xs % 8 == 3) & (ys % 24 < 14)).float() * 0.3

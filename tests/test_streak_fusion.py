@@ -62,7 +62,6 @@ def test_across_opening_keeps_edges_across_the_direction_and_removes_streaks_and
     assert float(across[2:20, 6].max()) < 1e-6 and float(across[4, 16]) < 1e-6
     assert torch.allclose(across[12, 11:21], torch.full((10,), 0.6), atol=1e-5)
     # a 1 px diagonal falls between the bilinear samples of its own line: half its level
-    assert float(across[15:21, 11:17].diagonal().min()) > 0.15
     assert float(across[16:20, 12:16].diagonal().min()) > 0.25
     assert bool((across <= image + 1e-6).all())
 
