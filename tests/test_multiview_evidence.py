@@ -88,3 +88,22 @@ def test_an_unknown_neighbour_depth_keeps_its_vote():
     neighbours = torch.tensor([[1]])
     assert not neighbour_colours(points, neighbours, cams, images, near)[1].any()
     assert neighbour_colours(points, neighbours, cams, images, unknown)[1].all()
+
+
+def test_gated_evidence_moves_the_rain_only_where_the_head_sees_rain():
+    """mv-rain's ``where_rain``: the neighbours say how much rain there is where the head sees
+    rain, never where it sees none (an edge the reprojection misses stays dry)."""
+    from rainyscape.losses.multiview import evidence_error
+
+    rain = torch.tensor([0.0, 0.1, 0.0]).view(1, 1, 1, 3).repeat(1, 3, 1, 1).requires_grad_()
+    evidence = torch.full((1, 3, 1, 3), 0.3)
+    defined = torch.tensor([True, True, False]).view(1, 1, 1, 3)
+    ungated = evidence_error(rain, evidence, defined)
+    assert torch.isclose(ungated, torch.tensor((0.3 ** 2 + 0.2 ** 2) / 2))
+    (grad,) = torch.autograd.grad(ungated, rain)
+    assert (grad[0, :, 0, :2] < 0).all() and (grad[0, :, 0, 2] == 0).all()  # both defined pixels rise
+
+    (grad,) = torch.autograd.grad(evidence_error(rain, evidence, defined, where_rain=0.02), rain)
+    assert (grad[0, :, 0, 0] == 0).all()  # dry to the head: the evidence does not make it rain
+    assert torch.allclose(grad[0, :, 0, 1], -2 * 0.2 / 6 * torch.ones(3), rtol=1e-3)  # rain: as ungated
+    assert (grad[0, :, 0, 2] == 0).all()

@@ -123,6 +123,18 @@ class MultiviewPhotometric(_WithEvidence):
         return (w * per_pixel).sum() / w.sum().clamp_min(1e-6)
 
 
+def evidence_error(rain: Tensor, evidence: Tensor, defined: Tensor, where_rain: float = 0.0) -> Tensor:
+    """Mean squared difference of the predicted rain (B, 3, h, w) and the evidence over the
+    pixels where the evidence is ``defined`` (B, 1, h, w); with ``where_rain`` > 0 a pixel
+    counts as much as the head itself sees rain there (1 - dry_weight of R, detached), and
+    still weighs as it would ungated (the mean stays over every defined pixel)."""
+    mask = defined.to(evidence.dtype)
+    count = (3 * mask.sum()).clamp_min(1.0)
+    if where_rain > 0:
+        mask = mask * (1.0 - dry_weight(rain, where_rain))
+    return ((rain - evidence) ** 2 * mask).sum() / count
+
+
 class MultiviewRain(_WithEvidence):
     """The predicted rain should be what a pixel shows beyond its neighbours' views."""
 
@@ -135,11 +147,14 @@ class MultiviewRain(_WithEvidence):
         views: int = bounded(6, 2)
         min_views: int = bounded(2, 1)
         occlusion: float = bounded(0.05, 0.0, 1.0)  # a neighbour nearer by this share does not vote (0: no test)
+        # Only where the head itself sees rain (R, detached, at this scale counts 1 - 1/e): the
+        # neighbours then say how much, never where (an edge the reprojection misses is not
+        # made rain). 0: every pixel votes.
+        where_rain: float = bounded(0.0, 0.0, 1.0)
 
     def __call__(self, ctx: LossContext) -> Tensor:
         evidence, defined = self.evidence(ctx)
-        mask = defined.to(evidence.dtype)
-        return ((ctx.rain - evidence) ** 2 * mask).sum() / (3 * mask.sum()).clamp_min(1.0)
+        return evidence_error(ctx.rain, evidence, defined, self.config.where_rain)
 
 
 class MultiviewAnchor(_WithEvidence):
