@@ -7,6 +7,9 @@ layers, over its training views:
 - the dry pixels (true rain under 0.02 in every channel) split by the predicted rain R there,
   each bin's PSNR against the clean view, and with ``--plain RUN_DIR`` the same pixels in a
   plain field's run of the same scene (e.g. ``3dgs``): where the rain method gains or loses;
+- the rain pixels, and the bright ones among them (the input at least ``BRIGHT`` above the
+  clean view): how much rain the input holds there (I - clean), how much R and the residual
+  I - B hold, and how much the render keeps (B - clean);
 - with ``--dilate``: how much of R a neighbour vote would take away, on the false rain (R >=
   0.05 on dry pixels more than 2 px from any rain) and on the true rain's pixels. Each
   pixel is lifted to 3D with the rendered depth and projected into its ``--views`` nearest
@@ -37,6 +40,7 @@ from rainyscape.postprocess.fusion import rain_mask
 
 BINS = ((0.0, 0.01), (0.01, 0.02), (0.02, 0.05), (0.05, 0.1), (0.1, float("inf")))
 FALSE_RAIN = 0.05  # predicted rain at least this on a dry pixel far from rain is false rain
+BRIGHT = 0.15  # a rain pixel whose input is at least this above the clean view is a bright drop
 
 
 def db(squared_error: float, count: int) -> float:
@@ -87,7 +91,14 @@ def main() -> None:
     views = {i: view_images(pipeline, i) for i in train}
     rows = {b: [0.0, 0.0, 0] for b in (*BINS, "false")}  # squared error (method, plain), pixels
     darker = 0.0  # the render less the clean view, summed over the false rain's pixels
+    amounts = {"rain": [0.0] * 5, "bright": [0.0] * 5}  # I - clean, R, I - B, B - clean, pixels
     for i, v in views.items():
+        added = (v.rainy - v.clean).mean(0)
+        for key, m in (("rain", wet(v)), ("bright", wet(v) & (added >= BRIGHT))):
+            layers = (added, v.rain.mean(0), (v.rainy - v.rendered).mean(0), (v.rendered - v.clean).mean(0))
+            for k, layer in enumerate(layers):
+                amounts[key][k] += float(layer[m].sum())
+            amounts[key][4] += int(m.sum())
         dry = ~wet(v)
         r = v.rain.amax(0)
         err = ((v.rendered - v.clean) ** 2).mean(0)
@@ -108,6 +119,9 @@ def main() -> None:
     print(f"  false rain (R >= {FALSE_RAIN}, more than 2 px from rain): {100 * false[2] / dry_count:.1f} %: "
           f"{db(false[0], false[2]):.2f}" + (f" / {db(false[1], false[2]):.2f}" if plain else "")
           + f", render - clean {darker / max(false[2], 1):+.3f}")
+    print("rain pixels: I - clean, R, I - B, B - clean (means)")
+    for key, (*sums, n) in amounts.items():
+        print(f"  {key}: {int(n)} px: " + ", ".join(f"{a / max(n, 1):.3f}" for a in sums))
     if not args.dilate:
         return
     rain = torch.zeros(scene.num_images, 3, scene.height, scene.width)
