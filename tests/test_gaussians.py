@@ -473,6 +473,9 @@ def test_rainyscape_plus_is_rainyscape_3dgs_with_multiview_rain_capped_tv_and_th
     plus, paper = method_config("rainyscape-plus", []), method_config("rainyscape-3dgs", [])
     assert set(plus.losses) - set(paper.losses) == {"multiview-rain", "floater-opacity"}
     assert plus.losses["multiview-rain"].name == "mv-rain"
+    # the neighbours set the amount (the reconstruction term's weight), where the head sees rain
+    assert plus.losses["multiview-rain"].weight == 500.0
+    assert plus.losses["multiview-rain"].options.where_rain == 0.02
     assert plus.losses["floater-opacity"].weight == 5.0 and plus.losses["floater-opacity"].phases == ("joint",)
     assert plus.losses["tv"].options.cap == 0.1 and paper.losses["tv"].options.cap == 0.0
     # the rain's direction looked for near each view's down; the paper's AGR looks everywhere

@@ -87,7 +87,8 @@ def _rainyscape_3dgs() -> PipelineConfig:
 def _rainyscape_plus() -> PipelineConfig:
     """rainyscape-3dgs with what the paper does not use (docs/rain.md, issue 16 table):
     rain is view-inconsistent, so the rain head is also taught by multi-view evidence (what a
-    pixel shows beyond its neighbours' views, reprojected with the rendered depth). TV on B
+    pixel shows beyond its neighbours' views, reprojected with the rendered depth), which sets
+    how much rain it holds where it sees rain (``MULTIVIEW_RAIN_*``). TV on B
     stays (without it heavy rain stayed in the Gaussians: plaza -0.99 dB on the cpu set), but
     capped, so that it does not blur the scene's strong edges. Rain fixed in 3D is fitted as
     floaters in front of the surface: where the head sees rain, their opacity is lowered
@@ -97,7 +98,8 @@ def _rainyscape_plus() -> PipelineConfig:
     cfg = _rainyscape_3dgs()
     cfg.method = "rainyscape-plus"
     cfg.rain_head.options.update(PLUS_RAIN_HEAD)
-    cfg.losses["multiview-rain"] = LossConfig("mv-rain", weight=MULTIVIEW_RAIN_WEIGHT)  # depth detached inside
+    cfg.losses["multiview-rain"] = LossConfig("mv-rain", weight=MULTIVIEW_RAIN_WEIGHT,  # depth detached inside
+                                              options={"where_rain": MULTIVIEW_RAIN_WHERE})
     cfg.losses["tv"].options = {"cap": TV_CAP}
     cfg.losses["floater-opacity"] = LossConfig("floater-opacity", weight=FLOATER_WEIGHT)
     cfg.losses["agr"].options = {**cfg.losses["agr"].options, "max_tilt": FALL_TILT}
@@ -120,9 +122,12 @@ PAPER_LATENT_GPU = ["rain_head.upscale=2", "rain_head.latent_channels=1"]
 # paper's TV blurs the dry pixels of light rain (docs/rain.md, "Where rainyscape-3dgs loses").
 TV_CAP = 0.1
 
-# mv-rain's weight, measured on crossroad (docs/rain.md); its evidence is noisier than the
-# rain head's own prediction (correlation about 0.5 with the true rain), so it nudges.
-MULTIVIEW_RAIN_WEIGHT = 50.0
+# mv-rain: the neighbours' evidence weighs as much as the reconstruction term, so that it sets
+# how much rain R holds; but only where the head itself sees rain (R at 0.02 counts 1 - 1/e),
+# since where a reprojection misses an edge the evidence calls it rain (docs/rain.md, "The
+# neighbours say how much"; ungated, crossroad's and fern's dry pixels paid for it).
+MULTIVIEW_RAIN_WEIGHT = 500.0
+MULTIVIEW_RAIN_WHERE = 0.02
 
 # floater-opacity's weight (docs/rain.md): 5 gains held out (+0.35 dB on the cpu set, +0.14 on
 # fern) and is level on the training views; 10 gains a little more on the cpu set but spends
