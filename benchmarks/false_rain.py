@@ -91,15 +91,17 @@ def main() -> None:
     views = {i: view_images(pipeline, i) for i in train}
     rows = {b: [0.0, 0.0, 0] for b in (*BINS, "false")}  # squared error (method, plain), pixels
     darker = 0.0  # the render less the clean view, summed over the false rain's pixels
-    amounts = {"rain": [0.0] * 5, "bright": [0.0] * 5}  # I - clean, R, I - B, B - clean, pixels
+    amounts = {"rain": [0.0] * 4, "bright": [0.0] * 4}  # sums of I - clean, R, I - B, B - clean
+    amount_pixels = dict.fromkeys(amounts, 0)
     for i, v in views.items():
+        rainy = wet(v)
         added = (v.rainy - v.clean).mean(0)
-        for key, m in (("rain", wet(v)), ("bright", wet(v) & (added >= BRIGHT))):
-            layers = (added, v.rain.mean(0), (v.rainy - v.rendered).mean(0), (v.rendered - v.clean).mean(0))
+        layers = (added, v.rain.mean(0), (v.rainy - v.rendered).mean(0), (v.rendered - v.clean).mean(0))
+        for key, m in (("rain", rainy), ("bright", rainy & (added >= BRIGHT))):
             for k, layer in enumerate(layers):
                 amounts[key][k] += float(layer[m].sum())
-            amounts[key][4] += int(m.sum())
-        dry = ~wet(v)
+            amount_pixels[key] += int(m.sum())
+        dry = ~rainy
         r = v.rain.amax(0)
         err = ((v.rendered - v.clean) ** 2).mean(0)
         err_plain = ((render_image(plain, i).clamp(0, 1) - v.clean) ** 2).mean(0) if plain else err
@@ -120,8 +122,9 @@ def main() -> None:
           f"{db(false[0], false[2]):.2f}" + (f" / {db(false[1], false[2]):.2f}" if plain else "")
           + f", render - clean {darker / max(false[2], 1):+.3f}")
     print("rain pixels: I - clean, R, I - B, B - clean (means)")
-    for key, (*sums, n) in amounts.items():
-        print(f"  {key}: {int(n)} px: " + ", ".join(f"{a / max(n, 1):.3f}" for a in sums))
+    for key, sums in amounts.items():
+        n = amount_pixels[key]
+        print(f"  {key}: {n} px: " + ", ".join(f"{a / max(n, 1):.3f}" for a in sums))
     if not args.dilate:
         return
     rain = torch.zeros(scene.num_images, 3, scene.height, scene.width)
