@@ -88,8 +88,8 @@ def _rainyscape_plus() -> PipelineConfig:
     """rainyscape-3dgs with what the paper does not use (docs/rain.md, issue 16 table):
     rain is view-inconsistent, so the rain head is also taught by multi-view evidence (what a
     pixel shows beyond its neighbours' views, reprojected with the rendered depth), which sets
-    how much rain it holds where it sees rain (``MULTIVIEW_RAIN_*``). TV on B
-    stays (without it heavy rain stayed in the Gaussians: plaza -0.99 dB on the cpu set), but
+    how much rain it holds where it sees rain (``MULTIVIEW_RAIN_*``). TV on B stays (without
+    it heavy rain stayed in the Gaussians: plaza -0.99 dB on the cpu set), but
     capped, so that it does not blur the scene's strong edges. Rain fixed in 3D is fitted as
     floaters in front of the surface: where the head sees rain, their opacity is lowered
     (``floater-opacity``, docs/rain.md "A free-space prior for the Gaussians"). The rain's
@@ -126,7 +126,7 @@ TV_CAP = 0.1
 # how much rain R holds; but only where the head itself sees rain (R at 0.02 counts 1 - 1/e),
 # since where a reprojection misses an edge the evidence calls it rain (docs/rain.md, "The
 # neighbours say how much"; ungated, crossroad's and fern's dry pixels paid for it).
-MULTIVIEW_RAIN_WEIGHT = 500.0
+MULTIVIEW_RAIN_WEIGHT = PAPER_WEIGHTS["reconstruction"]
 MULTIVIEW_RAIN_WHERE = 0.02
 
 # floater-opacity's weight (docs/rain.md): 5 gains held out (+0.35 dB on the cpu set, +0.14 on
