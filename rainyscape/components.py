@@ -149,10 +149,11 @@ class ImageHead(nn.Module):
         return below + layer
 
     def for_field(self, layer: Tensor, residual: Tensor, view_ids: Tensor) -> Tensor:
-        """The part of ``layer`` (B, C, h, w) the field is fitted without: what the terms that
+        """What of ``layer`` (B, C, h, w) the field is fitted without: what the terms that
         see the layer detached and a ray field's single rays read (``residual``: the input
         less the field's render there; ``view_ids`` (B,): whose views). The whole layer
-        unless the head narrows it."""
+        unless the head reshapes it (the rain head narrows it to its streaks, and raises it
+        where the residual shows more rain than it holds)."""
         return layer
 
     def callbacks(self) -> list[Callback]:

@@ -231,6 +231,27 @@ def test_the_field_fits_without_r_minus_what_runs_across_the_streaks():
     assert float(across[smear > 0].max()) < 0.05  # the estimated direction is a few degrees off
 
 
+def test_the_field_takes_more_of_r_where_the_residual_stands_out_across_the_streaks():
+    """``field_gain``: on a streak where R holds a third of what the residual shows, the field
+    is fitted without up to ``field_gain`` times R; on an edge along the streaks (a step in
+    the residual, the field's misfit) R stays as it was; 1 leaves R."""
+    scene = _scene(n=1, height=48, width=48)
+    ys, xs = torch.meshgrid(torch.arange(48.0), torch.arange(48.0), indexing="ij")
+    streaks = ((xs % 8 == 3) & (ys % 24 < 14)).float() * 0.3
+    step = (xs >= 40).float() * 0.3  # a vertical edge, along the streaks
+    residual = (streaks + step).expand(1, 3, 48, 48)
+    rain = (streaks / 3 + 0.1 * (xs == 40).float()).expand(1, 3, 48, 48)
+    view = torch.tensor([0])
+    assert _head(scene, field_across=2).for_field(rain, residual, view).equal(
+        _head(scene, field_across=2, field_gain=1.0).for_field(rain, residual, view))
+    raised = _head(scene, field_gain=2.0).for_field(rain, residual, view)[0, 0]
+    assert torch.allclose(raised[streaks > 0], torch.full_like(raised[streaks > 0], 0.2), atol=1e-4)
+    assert torch.allclose(raised[:, 40], torch.full((48,), 0.1), atol=1e-4)
+    assert float(raised[(streaks == 0) & (xs != 40)].abs().max()) < 1e-6
+    tripled = _head(scene, field_gain=5.0).for_field(rain, residual, view)[0, 0]
+    assert float(tripled[streaks > 0].max()) < 0.3 + 1e-4  # never more than the residual shows
+
+
 def test_the_fields_lines_run_near_the_views_down():
     """``max_tilt``: where horizontal scene edges outweigh the streaks in the residual, the lines
     still run along the streaks, or across them (the view is upright: the world's down runs

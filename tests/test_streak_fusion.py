@@ -14,7 +14,7 @@ from rainyscape.engine.pipeline import Pipeline, build_pipeline
 from rainyscape.errors import ConfigError
 from rainyscape.eval.protocol import evaluate_pipeline
 from rainyscape.imaging.metrics import psnr
-from rainyscape.imaging.streaks import across_opening, line_mean, line_opening
+from rainyscape.imaging.streaks import across_opening, across_ridge, line_mean, line_opening
 from rainyscape.postprocess.fusion import rain_mask, robust_threshold
 from rainyscape.postprocess.streak_fusion import StreakFusion, streak_mask
 from _eval_fixtures import OracleField, make_scene
@@ -64,6 +64,20 @@ def test_across_opening_keeps_edges_across_the_direction_and_removes_streaks_and
     # a 1 px diagonal falls between the bilinear samples of its own line: half its level
     assert float(across[16:20, 12:16].diagonal().min()) > 0.25
     assert bool((across <= image + 1e-6).all())
+
+
+
+def test_across_ridge_measures_streaks_over_their_background_and_not_edges_along_them():
+    image = torch.full((1, 1, 24, 24), 0.2)
+    image[0, 0, :, 14:] = 0.7  # a vertical step edge, along the direction
+    image[0, 0, 2:20, 5] += 0.3  # a 1 px streak on the dark side
+    image[0, 0, 2:20, 9:11] += 0.4  # a 2 px streak
+    ridge = across_ridge(image, torch.tensor([math.pi / 2]), 2)[0, 0]
+    assert torch.allclose(ridge[3:19, 5], torch.full((16,), 0.3), atol=1e-5)
+    assert torch.allclose(ridge[3:19, 9:11], torch.full((16, 2), 0.4), atol=1e-5)
+    assert float(ridge[:, 12:16].max()) < 1e-6  # the step's both sides stand out of nothing
+    # a 2 px streak seen only one pixel across (half_width 1) has itself for a neighbour
+    assert float(across_ridge(image, torch.tensor([math.pi / 2]), 1)[0, 0, 3:19, 9:11].max()) < 1e-6
 
 
 def _streaks(h: int, w: int, angle_deg: float, period: float, seed: int) -> torch.Tensor:

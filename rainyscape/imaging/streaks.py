@@ -59,3 +59,16 @@ def across_opening(images: Tensor, angle: Tensor, half_length: int, directions: 
     step = math.pi / (directions + 1)
     return reduce(torch.maximum, (line_opening(images, angle + k * step, half_length)
                                   for k in range(1, directions + 1)))
+
+
+def across_ridge(images: Tensor, angle: Tensor, half_width: int) -> Tensor:
+    """How far each pixel of (B, C, h, w) ``images`` stands above both of its neighbours
+    ``k`` pixels away across ``angle`` (B,) radians, at the best ``k`` in 1 .. ``half_width``
+    (never below 0). A streak along ``angle`` up to 2 ``half_width`` - 1 pixels wide stands
+    out by its own level over a flat background; an edge along it (a step) has one side as
+    bright as itself and does not stand out."""
+    samples = list(line_samples(images, angle + math.pi / 2, half_width))  # t = -n .. n
+    n = half_width
+    best = reduce(torch.maximum, (images - torch.maximum(samples[n - k], samples[n + k])
+                                  for k in range(1, n + 1)))
+    return best.clamp_min(0)

@@ -113,9 +113,12 @@ def _rainyscape_plus() -> PipelineConfig:
 # detail the Gaussians have not fitted yet (fern's light rain -0.60 dB), so the field is
 # fitted without R less what runs across the streaks in 5 px lines: a leaf's edge stays the
 # field's, a drop too short for a line along the streaks is still subtracted (docs/rain.md,
-# "The field fitted without R less what runs across the rain"). The GPU recipe keeps the
-# paper's head at paper-scale images (not measured there).
-PLUS_RAIN_HEAD = {"upscale": 1, "latent_channels": 4, "field_across": 2}
+# "The field fitted without R less what runs across the rain"). Where R holds only part of a
+# streak, the field is fitted without up to twice R, as far as the residual stands out across
+# the streaks (an edge along them does not; "The field fitted without more of R where the
+# residual stands out across the streaks"). The GPU recipe keeps the paper's head at
+# paper-scale images (not measured there).
+PLUS_RAIN_HEAD = {"upscale": 1, "latent_channels": 4, "field_across": 2, "field_gain": 2.0}
 PAPER_LATENT_GPU = ["rain_head.upscale=2", "rain_head.latent_channels=1"]
 
 # TV on B that leaves steps above TV_CAP alone: the scene's strong edges stay sharp where the
@@ -151,7 +154,7 @@ rainyscape_3dgs = MethodSpec(
 
 rainyscape_plus = MethodSpec(
     name="rainyscape-plus",
-    description="rainyscape-3dgs plus multi-view rain evidence (reprojected with the rendered depth) for the rain head, capped TV, a free-space prior against floaters under the rain, the rain direction looked for near each view's down, and on a CPU a full-resolution rain head whose R the field is fitted without, less the edges that run across the rain",
+    description="rainyscape-3dgs plus multi-view rain evidence (reprojected with the rendered depth) for the rain head, capped TV, a free-space prior against floaters under the rain, the rain direction looked for near each view's down, and on a CPU a full-resolution rain head whose R the field is fitted without, less the edges that run across the rain and raised where the residual stands out across it",
     config=_rainyscape_plus(),
     gpu=GS_GPU + PAPER_RAIN_HEAD_GPU + PAPER_LATENT_GPU,
 )

@@ -36,7 +36,7 @@ from rainyscape.components import Energy, ParamGroup, RainHead
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.angles import residual_streak_angle
-from rainyscape.imaging.streaks import across_opening, line_opening
+from rainyscape.imaging.streaks import across_opening, across_ridge, line_opening
 from rainyscape.rain.langevin import langevin_update
 from rainyscape.scene import SceneData
 
@@ -44,6 +44,9 @@ CAMERA_DIM = 16
 # latent_region computes the whole map with the plain layer when the region is at least
 # 1 / DENSE_REGION_SHARE of it, and gathers the region's rows of the layer otherwise.
 DENSE_REGION_SHARE = 8
+# field_gain's test of a streak: how far the residual stands above both of its neighbours up to
+# this many pixels across the streaks (streaks up to 3 px wide; the cpu recipe's 128 to 240 px)
+RIDGE_HALF_WIDTH = 2
 
 
 def camera_vectors(cameras: Cameras) -> Tensor:
@@ -114,6 +117,12 @@ class RainPredictor(RainHead):
         # the head took for rain stays the field's, a drop shorter than the line is still
         # subtracted. 0: off. With field_streaks too, the rest is then opened along the streaks.
         field_across: int = bounded(0, 0, 32)
+        # ... and, above 1, that R raised up to this many times itself where the residual
+        # stands out across the streaks by more (imaging/streaks.py's across_ridge, up to
+        # RIDGE_HALF_WIDTH pixels to each side): the head's R is a third to a half of the rain
+        # at its streaks, and the rest stayed in the field (docs/rain.md). An edge along the
+        # streaks does not stand out, so it does not raise R. 1: off.
+        field_gain: float = bounded(1.0, 1.0, 10.0)
         # ... in a direction whose streaks lean at most this (degrees) from the world's down in
         # the view (as the AGR loss's max_tilt; 90: any direction)
         max_tilt: float = bounded(90.0, above=0.0, hi=90.0)
@@ -140,7 +149,7 @@ class RainPredictor(RainHead):
         self.view_states = nn.Parameter(torch.randn(n, c.view_dim) * c.latent_std)
         self.register_buffer("camera_vectors", camera_vectors(scene.cameras), persistent=False)
         # where the world's down runs in each view, for the field's lines (only with the prior)
-        shaped = c.field_streaks > 0 or c.field_across > 0
+        shaped = c.field_streaks > 0 or c.field_across > 0 or c.field_gain > 1.0
         down = down_directions(scene.cameras) if c.max_tilt < 90.0 and shaped else torch.zeros(n)
         self.register_buffer("down", down, persistent=False)
 
@@ -186,7 +195,7 @@ class RainPredictor(RainHead):
 
     def for_field(self, layer: Tensor, residual: Tensor, view_ids: Tensor) -> Tensor:
         c = self.config
-        if c.field_streaks <= 0 and c.field_across <= 0:
+        if c.field_streaks <= 0 and c.field_across <= 0 and c.field_gain <= 1.0:
             return layer
         # as streak fusion finds it
         angle, valid = residual_streak_angle(residual, self.down[view_ids.to(self.down.device)],
@@ -196,6 +205,9 @@ class RainPredictor(RainHead):
             shaped = shaped - across_opening(shaped, angle, c.field_across)
         if c.field_streaks > 0:
             shaped = line_opening(shaped, angle, c.field_streaks)
+        if c.field_gain > 1.0:
+            ridge = across_ridge(residual, angle, RIDGE_HALF_WIDTH)
+            shaped = torch.maximum(shaped, torch.minimum(c.field_gain * shaped, ridge))
         # a window whose residual shows no direction keeps its whole R
         return torch.where(valid[:, None, None, None], shaped, layer)
 
