@@ -64,9 +64,10 @@ def across_opening(images: Tensor, angle: Tensor, half_length: int, directions: 
 def across_ridge(images: Tensor, angle: Tensor, half_width: int) -> Tensor:
     """How far each pixel of (B, C, h, w) ``images`` stands above both of its neighbours
     ``k`` pixels away across ``angle`` (B,) radians, at the best ``k`` in 1 .. ``half_width``
-    (never below 0). A streak along ``angle`` up to 2 ``half_width`` - 1 pixels wide stands
-    out by its own level over a flat background; an edge along it (a step) has one side as
-    bright as itself and does not stand out."""
+    (never below 0). Over a flat background, every pixel of a streak along ``angle`` up to
+    ``half_width`` pixels wide stands out by the streak's level (the middle of one up to
+    2 ``half_width`` - 1 wide); an edge along it (a step) has one side as bright as itself
+    and does not stand out."""
     samples = list(line_samples(images, angle + math.pi / 2, half_width))  # t = -n .. n
     n = half_width
     best = reduce(torch.maximum, (images - torch.maximum(samples[n - k], samples[n + k])

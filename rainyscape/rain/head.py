@@ -45,7 +45,8 @@ CAMERA_DIM = 16
 # 1 / DENSE_REGION_SHARE of it, and gathers the region's rows of the layer otherwise.
 DENSE_REGION_SHARE = 8
 # field_gain's test of a streak: how far the residual stands above both of its neighbours up to
-# this many pixels across the streaks (streaks up to 3 px wide; the cpu recipe's 128 to 240 px)
+# this many pixels across the streaks (all of a streak up to 2 px wide, the middle of a 3 px one:
+# the cpu recipe's streaks at 128 to 240 px)
 RIDGE_HALF_WIDTH = 2
 
 
