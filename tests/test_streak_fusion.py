@@ -66,7 +66,6 @@ def test_across_opening_keeps_edges_across_the_direction_and_removes_streaks_and
     assert bool((across <= image + 1e-6).all())
 
 
-
 def test_across_ridge_measures_streaks_over_their_background_and_not_edges_along_them():
     image = torch.full((1, 1, 24, 24), 0.2)
     image[0, 0, :, 14:] = 0.7  # a vertical step edge, along the direction
@@ -75,7 +74,7 @@ def test_across_ridge_measures_streaks_over_their_background_and_not_edges_along
     ridge = across_ridge(image, torch.tensor([math.pi / 2]), 2)[0, 0]
     assert torch.allclose(ridge[3:19, 5], torch.full((16,), 0.3), atol=1e-5)
     assert torch.allclose(ridge[3:19, 9:11], torch.full((16, 2), 0.4), atol=1e-5)
-    assert float(ridge[:, 12:16].max()) < 1e-6  # the step's both sides stand out of nothing
+    assert float(ridge[:, 12:16].max()) < 1e-6  # neither side of the step stands out
     # a 2 px streak seen only one pixel across (half_width 1) has itself for a neighbour
     assert float(across_ridge(image, torch.tensor([math.pi / 2]), 1)[0, 0, 3:19, 9:11].max()) < 1e-6
 

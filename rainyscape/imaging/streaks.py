@@ -68,8 +68,8 @@ def across_ridge(images: Tensor, angle: Tensor, half_width: int) -> Tensor:
     ``half_width`` pixels wide stands out by the streak's level (the middle of one up to
     2 ``half_width`` - 1 wide); an edge along it (a step) has one side as bright as itself
     and does not stand out."""
-    samples = list(line_samples(images, angle + math.pi / 2, half_width))  # t = -n .. n
     n = half_width
+    samples = list(line_samples(images, angle + math.pi / 2, n))  # t = -n .. n
     best = reduce(torch.maximum, (images - torch.maximum(samples[n - k], samples[n + k])
                                   for k in range(1, n + 1)))
     return best.clamp_min(0)

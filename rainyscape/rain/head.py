@@ -150,8 +150,8 @@ class RainPredictor(RainHead):
         self.view_states = nn.Parameter(torch.randn(n, c.view_dim) * c.latent_std)
         self.register_buffer("camera_vectors", camera_vectors(scene.cameras), persistent=False)
         # where the world's down runs in each view, for the field's lines (only with the prior)
-        shaped = c.field_streaks > 0 or c.field_across > 0 or c.field_gain > 1.0
-        down = down_directions(scene.cameras) if c.max_tilt < 90.0 and shaped else torch.zeros(n)
+        prior = c.max_tilt < 90.0 and self._reshapes_for_field()
+        down = down_directions(scene.cameras) if prior else torch.zeros(n)
         self.register_buffer("down", down, persistent=False)
 
         # MLP: (s, v_i) and p_i branches summed, a hidden layer, then the latent map.
@@ -194,9 +194,14 @@ class RainPredictor(RainHead):
                         c.latent_noise_steps, c.langevin_step, c.langevin_prior_var, c.latent_patch_size,
                         c.langevin_noise)
 
+    def _reshapes_for_field(self) -> bool:
+        """Whether :meth:`for_field` changes R (any of field_across, field_streaks, field_gain)."""
+        c = self.config
+        return c.field_streaks > 0 or c.field_across > 0 or c.field_gain > 1.0
+
     def for_field(self, layer: Tensor, residual: Tensor, view_ids: Tensor) -> Tensor:
         c = self.config
-        if c.field_streaks <= 0 and c.field_across <= 0 and c.field_gain <= 1.0:
+        if not self._reshapes_for_field():
             return layer
         # as streak fusion finds it
         angle, valid = residual_streak_angle(residual, self.down[view_ids.to(self.down.device)],
