@@ -4,10 +4,11 @@ simulated scene with its true depth and rain layer."""
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from rainyscape.cameras import Window
 from rainyscape.losses.multiview_evidence import (backproject, neighbour_colours, neighbour_table,
-                                                  rain_evidence)
+                                                  rain_evidence, sample_views)
 
 
 def test_neighbours_are_the_nearest_other_views_of_the_pool():
@@ -107,3 +108,15 @@ def test_gated_evidence_moves_the_rain_only_where_the_head_sees_rain():
     assert (grad[0, :, 0, 0] == 0).all()  # dry to the head: the evidence does not make it rain
     assert torch.allclose(grad[0, :, 0, 1], -2 * 0.2 / 6 * torch.ones(3), rtol=1e-3)  # rain: as ungated
     assert (grad[0, :, 0, 2] == 0).all()
+
+
+def test_sampling_each_view_once_matches_sampling_a_copy_per_row():
+    """Rows that share a view (a batch of single rays) are read from one image, not from a
+    copy per row; the colours and depths are the same to the bit."""
+    g = torch.Generator().manual_seed(0)
+    stack = torch.rand(5, 3, 9, 11, generator=g)
+    for views in (torch.tensor([3, 1, 3, 3, 0, 1]), torch.tensor([4, 2, 0])):
+        grid = torch.rand(len(views), 7, 2, generator=g) * 2.2 - 1.1  # some outside the image
+        for mode in ("bilinear", "nearest"):
+            copied = F.grid_sample(stack[views], grid[:, :, None], mode=mode, align_corners=False)[..., 0]
+            assert torch.equal(sample_views(stack, views, grid, mode), copied)
