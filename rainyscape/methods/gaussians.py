@@ -84,77 +84,9 @@ def _rainyscape_3dgs() -> PipelineConfig:
     return cfg
 
 
-def _rainyscape_plus() -> PipelineConfig:
-    """rainyscape-3dgs with what the paper does not use (docs/rain.md, issue 16 table):
-    rain is view-inconsistent, so the rain head is also taught by multi-view evidence (what a
-    pixel shows beyond its neighbours' views, reprojected with the rendered depth), which sets
-    how much rain it holds where it sees rain (``MULTIVIEW_RAIN_*``). TV on B stays (without
-    it heavy rain stayed in the Gaussians: plaza -0.99 dB on the cpu set), but
-    capped, so that it does not blur the scene's strong edges. Rain fixed in 3D is fitted as
-    floaters in front of the surface: where the head sees rain, their opacity is lowered
-    (``floater-opacity``, docs/rain.md "A free-space prior for the Gaussians"). The rain's
-    direction is looked for near each view's down (``FALL_TILT``). On a CPU the head works at
-    the image's resolution (``PLUS_RAIN_HEAD``)."""
-    cfg = _rainyscape_3dgs()
-    cfg.method = "rainyscape-plus"
-    cfg.rain_head.options.update(PLUS_RAIN_HEAD)
-    cfg.losses["multiview-rain"] = LossConfig("mv-rain", weight=MULTIVIEW_RAIN_WEIGHT,  # depth detached inside
-                                              options={"where_rain": MULTIVIEW_RAIN_WHERE})
-    cfg.losses["tv"].options = {"cap": TV_CAP}
-    cfg.losses["floater-opacity"] = LossConfig("floater-opacity", weight=FLOATER_WEIGHT)
-    cfg.losses["agr"].options = {**cfg.losses["agr"].options, "max_tilt": FALL_TILT}
-    cfg.rain_head.options["max_tilt"] = FALL_TILT
-    return cfg
-
-
-# The rain head's latent map at the image's resolution with four channels, where the paper's is
-# half resolution with one: streaks at the CPU recipe's 128 to 240 px are 1 to 2 px wide, and
-# the half-resolution map recovered a third to a half of each. The wider head also takes
-# detail the Gaussians have not fitted yet (fern's light rain -0.60 dB), so the field is
-# fitted without R less what runs across the streaks in 5 px lines: a leaf's edge stays the
-# field's, a drop too short for a line along the streaks is still subtracted (docs/rain.md,
-# "The field fitted without R less what runs across the rain"). Where R holds only part of a
-# streak, the field is fitted without up to twice R, as far as the residual stands out across
-# the streaks (an edge along them does not; "The field fitted without more of R where the
-# residual stands out across the streaks"). The GPU recipe keeps the paper's head at
-# paper-scale images (not measured there).
-PLUS_RAIN_HEAD = {"upscale": 1, "latent_channels": 4, "field_across": 2, "field_gain": 2.0}
-PAPER_LATENT_GPU = ["rain_head.upscale=2", "rain_head.latent_channels=1"]
-
-# TV on B that leaves steps above TV_CAP alone: the scene's strong edges stay sharp where the
-# paper's TV blurs the dry pixels of light rain (docs/rain.md, "Where rainyscape-3dgs loses").
-TV_CAP = 0.1
-
-# mv-rain: the neighbours' evidence weighs as much as the reconstruction term, so that it sets
-# how much rain R holds; but only where the head itself sees rain (R at 0.02 counts 1 - 1/e),
-# since where a reprojection misses an edge the evidence calls it rain (docs/rain.md, "The
-# neighbours say how much"; ungated, crossroad's and fern's dry pixels paid for it).
-MULTIVIEW_RAIN_WEIGHT = PAPER_WEIGHTS["reconstruction"]
-MULTIVIEW_RAIN_WHERE = 0.02
-
-# floater-opacity's weight (docs/rain.md): 5 gains held out (+0.35 dB on the cpu set, +0.14 on
-# fern) and is level on the training views; 10 gains a little more on the cpu set but spends
-# the dry pixels of every real scene (fern -0.22 dB). Its gradient per gated Gaussian is then
-# about five times a pixel's photometric one.
-FLOATER_WEIGHT = 5.0
-
-# Rain falls: the AGR loss and the head's lines for the field look for the streaks' direction within
-# FALL_TILT degrees of the world's down in each view (rainyscape.cameras.down_directions; the
-# cpu set's wind slants them by up to 30 degrees, perspective by more), so that a view whose
-# residual is ruled by scene edges across the fall (yard's roofs and steps) is not steered
-# along them (docs/rain.md, "Rain falls").
-FALL_TILT = 60.0
-
 rainyscape_3dgs = MethodSpec(
     name="rainyscape-3dgs",
     description="RainyScape on 3D Gaussian Splatting: 3DGS warm-up, then the rain module (authors' loss split)",
     config=_rainyscape_3dgs(),
     gpu=GS_GPU + PAPER_RAIN_HEAD_GPU,
-)
-
-rainyscape_plus = MethodSpec(
-    name="rainyscape-plus",
-    description="rainyscape-3dgs plus multi-view rain evidence (reprojected with the rendered depth) for the rain head, capped TV, a free-space prior against floaters under the rain, the rain direction looked for near each view's down, and on a CPU a full-resolution rain head whose R the field is fitted without, less the edges that run across the rain and raised where the residual stands out across it",
-    config=_rainyscape_plus(),
-    gpu=GS_GPU + PAPER_RAIN_HEAD_GPU + PAPER_LATENT_GPU,
 )
