@@ -1,19 +1,24 @@
 """``rainyscape-plus`` (on the Gaussians) and ``rainyscape-plus-nerf`` (on the grid field):
-RainyScape with what the paper does not use, the same parts on both fields.
+RainyScape with what the paper does not use.
 
 Each is its paper method (``rainyscape-3dgs``, ``rainyscape-nerf``: same field, data, phases
-and budget, read from it, never copied) with:
+and budget, read from it, never copied) with the parts both fields share
+(:func:`with_plus_parts`):
 
-- multi-view evidence for the rain head: what a pixel shows beyond its neighbours' views,
-  reprojected with the rendered depth, sets how much rain R holds where the head sees rain
-  (``MULTIVIEW_RAIN_*``);
 - TV on B capped, so that it does not blur the scene's strong edges (``TV_CAP``);
 - the rain's direction looked for near each view's down (``FALL_TILT``);
 - on a CPU, a rain head at the image's resolution whose R the field is fitted without, less
   the edges that run across the rain and raised where the residual stands out across it
-  (``PLUS_RAIN_HEAD``);
-- on the Gaussians, a free-space prior: where the head sees rain, the opacity of Gaussians in
-  front of the surface is lowered (``FLOATER_WEIGHT``).
+  (``PLUS_RAIN_HEAD``).
+
+``rainyscape-plus`` adds, on the Gaussians:
+
+- multi-view evidence for the rain head: what a pixel shows beyond its neighbours' views,
+  reprojected with the rendered depth, sets how much rain R holds where the head sees rain
+  (``MULTIVIEW_RAIN_*``; on the grid field it was level, so ``rainyscape-plus-nerf`` leaves
+  it to ``losses.mv-rain.weight``);
+- a free-space prior: where the head sees rain, the opacity of Gaussians in front of the
+  surface is lowered (``FLOATER_WEIGHT``).
 
 docs/rain.md has the measurement behind each. Plain data only: this module imports no torch.
 """
