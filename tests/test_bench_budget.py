@@ -137,12 +137,12 @@ def test_gap_table_puts_each_gain_next_to_the_gap_its_field_leaves():
 @pytest.mark.parametrize("profile", ["cpu", "gpu"])
 def test_every_recipe_builds_and_a_field_family_shares_one_budget(profile):
     """Both recipes of every method of this package materialise, and methods training one field
-    get one budget (within the paper-faithful pairs, robust baselines and rainyscape-plus)."""
+    get one budget (within the paper-faithful pairs, robust baselines and both plus methods)."""
     from rainyscape import registry
 
     ours = [n for n, e in registry.entries("method").items() if e.target.startswith("rainyscape.methods")]
     budgets = {m: cell_budget(method_config(m, [f"profile={profile}"]), 512, 512, 44) for m in ours}
-    groups = {"grid": ("nerf", "robust-nerf", "rainyscape-nerf"),
+    groups = {"grid": ("nerf", "robust-nerf", "rainyscape-nerf", "rainyscape-plus-nerf"),
               "nerf-mlp": ("vanilla-nerf", "rainyscape-vanilla-nerf"),
               "gaussians": ("3dgs", "robust-3dgs", "desplat", "rainyscape-3dgs", "rainyscape-plus")}
     assert sorted(ours) == sorted(m for g in groups.values() for m in g)
