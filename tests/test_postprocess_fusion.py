@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from rainyscape.errors import ConfigError
-from rainyscape.postprocess.fusion import rain_mask
+from rainyscape.postprocess.fusion import otsu_threshold, rain_mask
 from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion
 
 
@@ -85,3 +85,33 @@ def test_default_threshold_follows_each_views_own_rain_and_is_never_empty():
         assert mask.sum() <= 24 + 10  # and hardly anything else
         fixed = RainMaskFusion(RainMaskFusion.Config(threshold=0.02, dilation=0)).mask(rain, rain, rain)
         assert fixed.any() == (base > 0.02)  # the old constant: empty under a faint head
+
+
+def test_otsu_threshold_splits_two_levels_and_scales_with_the_map():
+    gen = torch.Generator().manual_seed(2)
+    level = torch.where(torch.rand(1, 40, 40, generator=gen) < 0.1, 0.3, 0.05)
+    level = level + 0.01 * torch.rand(1, 40, 40, generator=gen)
+    t = otsu_threshold(level.expand(3, -1, -1))
+    assert 0.06 < t < 0.3  # between the two classes
+    assert otsu_threshold(10 * level) == pytest.approx(10 * t, rel=1e-4)  # no constant in it
+    assert otsu_threshold(torch.zeros(3, 8, 8)) == 0.0  # no rain: nothing is above 0
+
+
+def test_otsu_leaves_the_faint_rain_a_head_spreads_over_the_view_out_of_the_mask():
+    """A head with no rain on half the pixels puts the median and its deviation at 0, so
+    median + deviations took every pixel with any rain at all (half the view and more on the
+    real set); Otsu's level keeps the streaks and leaves the faint rest to the input."""
+    gen = torch.Generator().manual_seed(3)
+    u = torch.rand(1, 64, 64, generator=gen)
+    rain = torch.where(u < 0.55, 0.0, 0.01 * torch.rand(1, 64, 64, generator=gen))  # faint, 40 %
+    streaks = u > 0.95
+    rain = torch.where(streaks, 0.1 + 0.2 * torch.rand(1, 64, 64, generator=gen), rain).expand(3, -1, -1)
+    otsu = RainMaskFusion(RainMaskFusion.Config(dilation=0)).mask(rain, rain, rain)
+    deviations = RainMaskFusion(RainMaskFusion.Config(dilation=0, rule="deviations")).mask(rain, rain, rain)
+    assert torch.equal(otsu, streaks)
+    assert deviations.float().mean() > 0.4
+
+
+def test_an_unknown_threshold_rule_is_refused():
+    with pytest.raises(ConfigError, match="rule=median: not one of otsu | deviations"):
+        RainMaskFusion(RainMaskFusion.Config(rule="median"))

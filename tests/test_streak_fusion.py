@@ -15,7 +15,7 @@ from rainyscape.errors import ConfigError
 from rainyscape.eval.protocol import evaluate_pipeline
 from rainyscape.imaging.metrics import psnr
 from rainyscape.imaging.streaks import across_opening, across_ridge, line_mean, line_opening
-from rainyscape.postprocess.fusion import rain_mask, robust_threshold
+from rainyscape.postprocess.fusion import THRESHOLD_RULES, rain_mask, view_threshold
 from rainyscape.postprocess.streak_fusion import StreakFusion, streak_mask
 from _eval_fixtures import OracleField, make_scene
 
@@ -102,11 +102,12 @@ def _view(seed: int = 0, h: int = 64, w: int = 80):
     return clean, rendered, clean + rain, rain[0] > 0.1, detail[0] > 0
 
 
-def test_streak_mask_finds_the_streaks_not_the_missed_detail():
+@pytest.mark.parametrize("rule", THRESHOLD_RULES)
+def test_streak_mask_finds_the_streaks_not_the_missed_detail(rule):
     clean, rendered, rainy, wet, speck = _view()
-    mask = streak_mask(rendered, rainy, sigmas=3.0, half_length=3, dilation=0)[0]
+    mask = streak_mask(rendered, rainy, sigmas=3.0, half_length=3, dilation=0, rule=rule)[0]
     residual = rainy - rendered
-    residual_only = rain_mask(residual, robust_threshold(residual, 3.0), 0)[0]
+    residual_only = rain_mask(residual, view_threshold(residual, rule, 3.0), 0)[0]
     dry_speck = speck & ~wet
     assert mask[wet].float().mean() > 0.8  # the streaks
     assert residual_only[dry_speck].float().mean() > 0.9  # the residual alone takes the grain too ...

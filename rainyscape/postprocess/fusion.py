@@ -30,6 +30,37 @@ def robust_threshold(values: Tensor, sigmas: float) -> float:
     return float(median + sigmas * spread.clamp_min(1e-6))
 
 
+def otsu_threshold(values: Tensor, bins: int = 256) -> float:
+    """The level that splits a view's map (C, H, W) of rain-like values into its two classes
+    of largest between-class variance (Otsu, 1979), over the per-pixel maximum over channels
+    binned on [0, its maximum]. It follows the rain's amount: faint false rain spread over a
+    view (a rain head at full resolution puts some on most pixels) falls in the dry class,
+    where median + deviations (:func:`robust_threshold`) sit just above the median and took
+    half the view or more. It lies inside the values' range, so the mask is never empty
+    unless the map is flat."""
+    level = values.amax(0).flatten().float().clamp_min(0.0)
+    top = float(level.max())
+    if top <= 0.0:
+        return 0.0
+    hist = torch.histc(level, bins, 0.0, top)
+    centres = (torch.arange(bins, device=level.device, dtype=level.dtype) + 0.5) * (top / bins)
+    p = hist / hist.sum()
+    below = p.cumsum(0)  # share of pixels at or below each bin
+    mean_below = (p * centres).cumsum(0)
+    between = (mean_below[-1] * below - mean_below) ** 2 / (below * (1.0 - below)).clamp_min(1e-12)
+    return float((int(between[:-1].argmax()) + 1) * top / bins)  # the upper edge of the lower class
+
+
+THRESHOLD_RULES = ("otsu", "deviations")
+
+
+def view_threshold(values: Tensor, rule: str, sigmas: float) -> float:
+    """A view's own threshold for ``values`` (C, H, W) under ``rule``: ``otsu``
+    (:func:`otsu_threshold`) or ``deviations`` (``sigmas`` robust deviations above the
+    median, :func:`robust_threshold`)."""
+    return otsu_threshold(values) if rule == "otsu" else robust_threshold(values, sigmas)
+
+
 def rain_mask(rain: Tensor, threshold: float, dilation: int) -> Tensor:
     """Binary mask (1, H, W): any channel of ``rain`` (3, H, W) above ``threshold``, grown by
     ``dilation`` pixels in every direction (a square structuring element), so the faint

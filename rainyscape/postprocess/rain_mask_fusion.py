@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
-from rainyscape.config.schema import bounded
+from rainyscape.config.schema import bounded, check_choice, choice
 from rainyscape.errors import ConfigError
-from rainyscape.postprocess.fusion import MaskedFusion, rain_mask, robust_threshold
+from rainyscape.postprocess.fusion import THRESHOLD_RULES, MaskedFusion, rain_mask, view_threshold
 
 
 class RainMaskFusion(MaskedFusion):
@@ -25,9 +25,12 @@ class RainMaskFusion(MaskedFusion):
 
     @dataclass
     class Config:
-        # rain level (grey levels in [0, 1]) that counts as rain; 0: per view, `sigmas` robust
-        # deviations above the median of the view's predicted rain (robust_threshold)
+        # rain level (grey levels in [0, 1]) that counts as rain; 0: per view, from the view's
+        # predicted rain by `rule`: otsu (fusion.otsu_threshold) or deviations (`sigmas` robust
+        # deviations above its median, fusion.robust_threshold; measured: docs/rain.md,
+        # "The fusions' thresholds from Otsu's rule")
         threshold: float = bounded(0.0, 0.0, 1.0)
+        rule: str = choice("otsu", THRESHOLD_RULES)
         sigmas: float = bounded(3.0, above=0.0, hi=100.0)
         dilation: int = bounded(1, 0, 64)  # grow the mask by this many pixels
         # inside the mask, the render only where it is darker than the input (I = B + R,
@@ -40,9 +43,10 @@ class RainMaskFusion(MaskedFusion):
             raise ConfigError(f"postprocess threshold must be >= 0, got {self.config.threshold}")
         if self.config.dilation < 0:
             raise ConfigError(f"postprocess dilation must be >= 0, got {self.config.dilation}")
+        check_choice(self.config.rule, THRESHOLD_RULES, "postprocess rule")
         self.below_input = self.config.below_input
 
     def mask(self, rendered: Tensor, rain: Tensor, rainy: Tensor) -> Tensor:
         c = self.config
-        threshold = c.threshold if c.threshold > 0 else robust_threshold(rain, c.sigmas)
+        threshold = c.threshold if c.threshold > 0 else view_threshold(rain, c.rule, c.sigmas)
         return rain_mask(rain, threshold, c.dilation)
