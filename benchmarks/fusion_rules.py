@@ -2,9 +2,9 @@
 views (simulated, or real photos with simulated rain): for each run, the training views fused
 by `rain-mask-fusion` (a run with a rain head) and `streak-fusion`, each under every rule of
 ``postprocess/fusion.py: THRESHOLD_RULES``, with the mask's coverage and the random-mask
-control of the same coverage; and, for reference, the fusion under the true rain's pixels
-grown by one pixel (the simulator's rain layer, read for this measurement only). PSNR
-against the clean views, averaged over the training views.
+control of the same coverage (seeded as evaluation seeds it); and, for reference, the fusion
+under the true rain's pixels grown by one pixel (the simulator's rain layer, read for this
+measurement only). PSNR against the clean views, averaged over the training views.
 
     python benchmarks/fusion_rules.py RUN_DIR [RUN_DIR ...] [--json OUT]
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from rainyscape.engine.run import load_run
-from rainyscape.eval.protocol import RAIN_PIXEL
+from rainyscape.eval.protocol import CONTROL_SEED, RAIN_PIXEL
 from rainyscape.eval.views import view_images
 from rainyscape.imaging.metrics import psnr
 from rainyscape.postprocess.fusion import THRESHOLD_RULES, fuse, rain_mask
@@ -50,7 +50,7 @@ def run_rows(run_dir: Path) -> dict:
             row = {"input": score(v.rainy), "render": score(v.rendered),
                    "true mask": score(fuse(v.rendered, v.rainy, rain_mask(v.true_rain, RAIN_PIXEL, 1)))}
             for name, post in posts.items():
-                control = post.control(v.rendered, v.rain, v.rainy, seed=i)
+                control = post.control(v.rendered, v.rain, v.rainy, seed=CONTROL_SEED + i)
                 row[name] = score(post(v.rendered, v.rain, v.rainy))
                 row[f"{name} control"] = score(control.control)
                 row[f"{name} coverage"] = control.coverage

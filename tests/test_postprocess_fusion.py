@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from rainyscape.errors import ConfigError
-from rainyscape.postprocess.fusion import otsu_threshold, rain_mask
+from rainyscape.postprocess.fusion import otsu_threshold, rain_mask, robust_threshold, view_threshold
 from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion
 
 
@@ -108,12 +108,30 @@ def test_otsu_leaves_the_faint_rain_a_head_spreads_over_the_view_out_of_the_mask
     rain = torch.where(u < 0.55, 0.0, 0.01 * torch.rand(1, 64, 64, generator=gen))  # faint, 40 %
     streaks = u > 0.95
     rain = torch.where(streaks, 0.1 + 0.2 * torch.rand(1, 64, 64, generator=gen), rain).expand(3, -1, -1)
-    otsu = RainMaskFusion(RainMaskFusion.Config(dilation=0)).mask(rain, rain, rain)
+    otsu = RainMaskFusion(RainMaskFusion.Config(dilation=0, rule="otsu")).mask(rain, rain, rain)
     deviations = RainMaskFusion(RainMaskFusion.Config(dilation=0, rule="deviations")).mask(rain, rain, rain)
-    assert torch.equal(otsu, streaks)
+    both = RainMaskFusion(RainMaskFusion.Config(dilation=0)).mask(rain, rain, rain)  # the default
+    assert torch.equal(otsu, streaks) and torch.equal(both, streaks)
     assert deviations.float().mean() > 0.4
 
 
+def test_both_keeps_the_faint_rain_out_when_it_is_most_of_the_view():
+    """The other way round (the real Yard's head): faint rain on most of the view is a class
+    of its own, and Otsu splits it from the zeros; the deviations above its median do not,
+    and ``both`` takes the higher of the two levels."""
+    gen = torch.Generator().manual_seed(4)
+    u = torch.rand(1, 64, 64, generator=gen)
+    faint = 0.04 + 0.06 * torch.rand(1, 64, 64, generator=gen)
+    rain = torch.where(u < 0.3, 0.0, faint)  # zeros on 30 %, faint everywhere else
+    streaks = u > 0.98
+    rain = torch.where(streaks, 0.2 + 0.01 * torch.rand(1, 64, 64, generator=gen), rain).expand(3, -1, -1)
+    otsu, deviations = otsu_threshold(rain), robust_threshold(rain, 3.0)
+    assert (rain.amax(0) > otsu).float().mean() > 0.5  # Otsu: the faint rain is rain
+    assert view_threshold(rain, "both", 3.0) == max(otsu, deviations) == deviations
+    both = RainMaskFusion(RainMaskFusion.Config(dilation=0)).mask(rain, rain, rain)
+    assert both.float().mean() < 0.1 and both[streaks].float().mean() > 0.9
+
+
 def test_an_unknown_threshold_rule_is_refused():
-    with pytest.raises(ConfigError, match=re.escape("rule=median: not one of otsu | deviations")):
+    with pytest.raises(ConfigError, match=re.escape("rule=median: not one of both | otsu | deviations")):
         RainMaskFusion(RainMaskFusion.Config(rule="median"))

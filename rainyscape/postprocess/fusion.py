@@ -37,7 +37,8 @@ def otsu_threshold(values: Tensor, bins: int = 256) -> float:
     view (a rain head at full resolution puts some on most pixels) falls in the dry class,
     where median + deviations (:func:`robust_threshold`) sit just above the median and took
     half the view or more. It lies inside the values' range, so the mask is never empty
-    unless the map is flat."""
+    unless the map is flat. Where faint rain is most of a view, Otsu splits it from the
+    zeros instead (:func:`view_threshold`'s ``both``)."""
     level = values.amax(0).flatten().float().clamp_min(0.0)
     top = float(level.max())
     if top <= 0.0:
@@ -51,14 +52,22 @@ def otsu_threshold(values: Tensor, bins: int = 256) -> float:
     return float((int(between[:-1].argmax()) + 1) * top / bins)  # the upper edge of the lower class
 
 
-THRESHOLD_RULES = ("otsu", "deviations")
+THRESHOLD_RULES = ("both", "otsu", "deviations")
 
 
 def view_threshold(values: Tensor, rule: str, sigmas: float) -> float:
     """A view's own threshold for ``values`` (C, H, W) under ``rule``: ``otsu``
-    (:func:`otsu_threshold`) or ``deviations`` (``sigmas`` robust deviations above the
-    median, :func:`robust_threshold`)."""
-    return otsu_threshold(values) if rule == "otsu" else robust_threshold(values, sigmas)
+    (:func:`otsu_threshold`), ``deviations`` (``sigmas`` robust deviations above the median,
+    :func:`robust_threshold`), or ``both`` (the higher: a pixel must pass both). Each fails
+    on a map the other reads right: where a head puts faint rain on most pixels and none on
+    half, the median and its deviation are 0 and ``deviations`` takes every pixel with any
+    rain; where the faint rain is most of the view and its own class, Otsu's split separates
+    it from the zeros (the real Yard: 64 % of a view)."""
+    if rule == "otsu":
+        return otsu_threshold(values)
+    if rule == "deviations":
+        return robust_threshold(values, sigmas)
+    return max(otsu_threshold(values), robust_threshold(values, sigmas))
 
 
 def rain_mask(rain: Tensor, threshold: float, dilation: int) -> Tensor:

@@ -26,11 +26,12 @@ class RainMaskFusion(MaskedFusion):
     @dataclass
     class Config:
         # rain level (grey levels in [0, 1]) that counts as rain; 0: per view, from the view's
-        # predicted rain by `rule`: otsu (fusion.otsu_threshold) or deviations (`sigmas` robust
-        # deviations above its median, fusion.robust_threshold; measured: docs/rain.md,
-        # "The fusions' thresholds from Otsu's rule")
+        # predicted rain by `rule` (fusion.view_threshold): both (the higher of the next two),
+        # otsu (fusion.otsu_threshold) or deviations (`sigmas` robust deviations above its
+        # median, fusion.robust_threshold); measured: docs/rain.md, "The fusions' thresholds
+        # from Otsu's rule and the deviations' together"
         threshold: float = bounded(0.0, 0.0, 1.0)
-        rule: str = choice("otsu", THRESHOLD_RULES)
+        rule: str = choice("both", THRESHOLD_RULES)
         sigmas: float = bounded(3.0, above=0.0, hi=100.0)
         dilation: int = bounded(1, 0, 64)  # grow the mask by this many pixels
         # inside the mask, the render only where it is darker than the input (I = B + R,

@@ -5,9 +5,9 @@ missed. Rain streaks share one direction (the paper's rain-angle estimate, III-C
 from this residual's gradient orientations); detail runs every way. A pixel goes to the
 render where the residual stands out both on its own and averaged along the streak
 direction (:func:`rainyscape.imaging.streaks.line_mean`), each above a threshold from the
-view's own values (Otsu's, or ``sigmas`` robust deviations above the median). It needs no
-rain head: any method's render can be fused, so a plain field's fused view is the baseline a
-rain head's must beat.
+view's own values (by default above both Otsu's level and ``sigmas`` robust deviations above
+the median). It needs no rain head: any method's render can be fused, so a plain field's
+fused view is the baseline a rain head's must beat.
 
 Measured against the rain head's mask (docs/rain.md, "Streak fusion").
 """
@@ -26,7 +26,7 @@ from rainyscape.postprocess.fusion import THRESHOLD_RULES, MaskedFusion, rain_ma
 
 
 def streak_mask(rendered: Tensor, rainy: Tensor, sigmas: float, half_length: int, dilation: int,
-                rule: str = "otsu") -> Tensor:
+                rule: str = "both") -> Tensor:
     """(1, H, W) mask of the streaks by which ``rainy`` (3, H, W) stands above ``rendered``:
     the residual above its view's threshold (``rule``, :func:`view_threshold`), and its mean
     along the streak direction above that mean's. Empty where the residual has no gradient
@@ -47,10 +47,11 @@ class StreakFusion(MaskedFusion):
 
     @dataclass
     class Config:
-        # each view's thresholds: otsu (fusion.otsu_threshold) or deviations (`sigmas` robust
-        # deviations above the median, fusion.robust_threshold; measured: docs/rain.md,
-        # "The fusions' thresholds from Otsu's rule")
-        rule: str = choice("otsu", THRESHOLD_RULES)
+        # each view's thresholds (fusion.view_threshold): both (the higher of the next two),
+        # otsu (fusion.otsu_threshold) or deviations (`sigmas` robust deviations above the
+        # median, fusion.robust_threshold); measured: docs/rain.md, "The fusions' thresholds
+        # from Otsu's rule and the deviations' together"
+        rule: str = choice("both", THRESHOLD_RULES)
         sigmas: float = bounded(3.0, above=0.0, hi=100.0)  # of the deviations rule
         half_length: int = bounded(3, 1, 32)  # the line mean spans 2 half_length + 1 pixels
         dilation: int = bounded(1, 0, 64)  # grow the mask by this many pixels
