@@ -26,7 +26,7 @@ from rainyscape.postprocess.fusion import THRESHOLD_RULES, MaskedFusion, rain_ma
 
 
 def streak_mask(rendered: Tensor, rainy: Tensor, sigmas: float, half_length: int, dilation: int,
-                rule: str = "both") -> Tensor:
+                rule: str) -> Tensor:
     """(1, H, W) mask of the streaks by which ``rainy`` (3, H, W) stands above ``rendered``:
     the residual above its view's threshold (``rule``, :func:`view_threshold`), and its mean
     along the streak direction above that mean's. Empty where the residual has no gradient
