@@ -17,9 +17,14 @@ layers, over its training views:
   ``--quantile`` over them of their R there, max-pooled over ``--dilate`` pixels. R less the
   vote is what stays: rain a surface shows in every view is not rain. With ``--decoy S`` the
   vote is taken against chance: less the same vote with the neighbours' R shifted by S px,
-  averaged over ``--decoy-box`` px (docs/rain.md, "False rain on light rain").
+  averaged over ``--decoy-box`` px (docs/rain.md, "False rain on light rain");
+- with ``--colour``: how much of R the rain head's ``field_colour`` gate would keep at each
+  start given, on the false rain and on the true rain's pixels, with the rain's colour fitted
+  on the run's R of at least 0.1 (rain/colour.py; docs/rain.md, "The field fitted without the
+  rain that has the rain's colour").
 
     python benchmarks/false_rain.py RUN_DIR [--plain RUN_DIR] [--dilate 3 5] [--quantile 0 0.5] [--decoy 8]
+        [--colour 0.1 0.2]
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image, view_images
 from rainyscape.losses.multiview_evidence import backproject, neighbour_colours, neighbour_table
 from rainyscape.postprocess.fusion import rain_mask
+from rainyscape.rain.colour import colour_sums, colour_weights, departure
 
 BINS = ((0.0, 0.01), (0.01, 0.02), (0.02, 0.05), (0.05, 0.1), (0.1, float("inf")))
 FALSE_RAIN = 0.05  # predicted rain at least this on a dry pixel far from rain is false rain
@@ -70,6 +76,29 @@ def vote(pooled: torch.Tensor, depth: torch.Tensor, cameras, view: int, neighbou
     return torch.where((valid.sum(1) >= 2) & torch.isfinite(ref), ref, torch.zeros_like(ref))
 
 
+def colour_gate(views: dict, starts: list[float]) -> None:
+    """Print the share of R the field_colour gate keeps at each start, on the false rain and
+    on the true rain's pixels."""
+    rainy = torch.stack([v.rainy for v in views.values()])
+    rendered = torch.stack([v.rendered for v in views.values()]).clamp(0, 1)
+    rain = torch.stack([v.rain for v in views.values()])
+    residual, strong = rainy - rendered, rain.amax(1) >= 0.1
+    colour = torch.ones(3)
+    for _ in range(50):  # the head's running fit, to its fixed point
+        num, den = colour_sums(residual, rendered, colour, strong)
+        colour = (num / den.clamp_min(1e-6)).clamp(0, 1)
+    departed = departure(residual, rendered, colour)
+    r = rain.amax(1)
+    masks = {"false": torch.stack([false_rain(v) for v in views.values()]),
+             "true": torch.stack([wet(v) for v in views.values()])}
+    print(f"colour gate (the rain's colour {[round(x, 3) for x in colour.tolist()]}): "
+          "share of R kept on false rain / on the true rain's pixels")
+    for start in starts:
+        kept = r * colour_weights(departed, start)
+        share = {k: float(kept[m].sum() / r[m].sum().clamp_min(1e-12)) for k, m in masks.items()}
+        print(f"  start {start}: {share['false']:.2f} / {share['true']:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run_dir", type=Path)
@@ -81,6 +110,7 @@ def main() -> None:
                     help="vote against chance: less the same vote with the neighbours' R shifted "
                          "by this many pixels, averaged over --decoy-box pixels (0: no decoy)")
     ap.add_argument("--decoy-box", type=int, default=15)
+    ap.add_argument("--colour", type=float, nargs="*", default=[], help="field_colour gates: their starts")
     args = ap.parse_args()
     pipeline, _ = load_run(args.run_dir, device="cpu")
     plain = load_run(args.plain, device="cpu")[0] if args.plain else None
@@ -125,6 +155,8 @@ def main() -> None:
     for key, sums in amounts.items():
         n = amount_pixels[key]
         print(f"  {key}: {n} px: " + ", ".join(f"{a / max(n, 1):.3f}" for a in sums))
+    if args.colour:
+        colour_gate(views, args.colour)
     if not args.dilate:
         return
     rain = torch.zeros(scene.num_images, 3, scene.height, scene.width)

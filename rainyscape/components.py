@@ -148,12 +148,14 @@ class ImageHead(nn.Module):
         layer; a head predicting an occluding (colour, alpha) layer lays it over instead."""
         return below + layer
 
-    def for_field(self, layer: Tensor, residual: Tensor, view_ids: Tensor) -> Tensor:
+    def for_field(self, layer: Tensor, residual: Tensor, view_ids: Tensor,
+                  background: Tensor | None = None) -> Tensor:
         """What of ``layer`` (B, C, h, w) the field is fitted without: what the terms that
         see the layer detached and a ray field's single rays read (``residual``: the input
-        less the field's render there; ``view_ids`` (B,): whose views). The whole layer
-        unless the head reshapes it (the rain head narrows it to its streaks, and raises it
-        where the residual shows more rain than it holds)."""
+        less the field's render there, ``background``; ``view_ids`` (B,): whose views). The
+        whole layer unless the head reshapes it (the rain head narrows it to its streaks,
+        raises it where the residual shows more rain than it holds, and keeps it where the
+        residual has the rain's colour)."""
         return layer
 
     def callbacks(self) -> list[Callback]:

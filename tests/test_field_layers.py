@@ -47,7 +47,7 @@ def test_the_rays_fit_against_the_heads_part_for_the_field(tiny_scene, tmp_path,
     cached = {}
     for narrowed in (False, True):
         if narrowed:
-            monkeypatch.setattr(head, "for_field", lambda layer, residual, view_ids: 0.5 * layer)
+            monkeypatch.setattr(head, "for_field", lambda layer, residual, view_ids, background: 0.5 * layer)
         trainer.generator.manual_seed(5)  # the same view
         trainer._cached_view_losses(name, phase, [head], pipeline.loss_terms(name))
         cached[narrowed] = trainer.layer_caches["rain"].values.float().clone()

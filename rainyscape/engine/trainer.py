@@ -147,8 +147,10 @@ class Trainer:
         for head in heads:
             head.train()
             layers[head.layer] = head(view_ids.to(self.device), window)
-        residual = (target - out.rgb).detach()
-        field_layers = {h.layer: h.for_field(layers[h.layer].detach(), residual, view_ids) for h in heads}
+        background = out.rgb.detach()
+        residual = target - background
+        field_layers = {h.layer: h.for_field(layers[h.layer].detach(), residual, view_ids, background)
+                        for h in heads}
         ctx = LossContext(out.rgb, target, layers, out, view_ids, self.step, name, window,
                           field_layers=field_layers)
         terms = self.pipeline.loss_terms(name)
@@ -234,7 +236,7 @@ class Trainer:
         residual = target - cached.rgb
         for head in heads:
             if head.layer in self.layer_caches:
-                self.layer_caches[head.layer].write(views, head.for_field(layers[head.layer].detach(), residual, views))
+                self.layer_caches[head.layer].write(views, head.for_field(layers[head.layer].detach(), residual, views, cached.rgb))
         ctx = LossContext(cached.rgb, target, layers, cached, view_ids, self.step, name, window, record=False)
         return compute_losses(terms, ctx)
 

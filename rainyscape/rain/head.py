@@ -37,6 +37,7 @@ from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.angles import residual_streak_angle
 from rainyscape.imaging.streaks import across_opening, across_ridge, line_opening
+from rainyscape.rain.colour import colour_sums, colour_weights, departure
 from rainyscape.rain.langevin import langevin_update
 from rainyscape.scene import SceneData
 
@@ -48,6 +49,10 @@ DENSE_REGION_SHARE = 8
 # this many pixels across the streaks (all of a streak up to 2 px wide, the middle of a 3 px one:
 # the cpu recipe's streaks at 128 to 240 px)
 RIDGE_HALF_WIDTH = 2
+# field_colour: the rain's colour is fitted on the pixels where R reaches this, its sums
+# kept as a running average that forgets this share a step
+COLOUR_RAIN = 0.1
+COLOUR_FORGET = 0.1
 
 
 def camera_vectors(cameras: Cameras) -> Tensor:
@@ -127,6 +132,11 @@ class RainPredictor(RainHead):
         # ... in a direction whose streaks lean at most this (degrees) from the world's down in
         # the view (as the AGR loss's max_tilt; 90: any direction)
         max_tilt: float = bounded(90.0, above=0.0, hi=90.0)
+        # ... and, above 0, only where the residual has the rain's colour (rain/colour.py: rain
+        # pulls a pixel towards one colour, fitted on the head's strong R): all of R where
+        # less than this share of the residual runs off that line, none at twice it. Detail
+        # the field has not fitted, in its own colour, stays the field's. 0: off.
+        field_colour: float = bounded(0.0, 0.0, 1.0)
         # Speed only (outputs agree to float rounding): channels-last convolutions ...
         channels_last: bool = True
         # ... and, opt-in, the CNN in bfloat16 under CUDA autocast (rounding ~1e-2 relative)
@@ -153,6 +163,9 @@ class RainPredictor(RainHead):
         prior = c.max_tilt < 90.0 and self._reshapes_for_field()
         down = down_directions(scene.cameras) if prior else torch.zeros(n)
         self.register_buffer("down", down, persistent=False)
+        if c.field_colour > 0:  # the rain's colour and its running least-squares sums
+            self.register_buffer("rain_colour", torch.ones(3))
+            self.register_buffer("colour_sums", torch.zeros(4))
 
         # MLP: (s, v_i) and p_i branches summed, a hidden layer, then the latent map.
         self.embed_state = nn.Linear(c.scene_dim + c.view_dim, c.mlp_width)
@@ -195,11 +208,33 @@ class RainPredictor(RainHead):
                         c.langevin_noise)
 
     def _reshapes_for_field(self) -> bool:
-        """Whether :meth:`for_field` changes R (any of field_across, field_streaks, field_gain)."""
+        """Whether :meth:`for_field` changes R along the streaks (field_across, field_streaks,
+        field_gain)."""
         c = self.config
         return c.field_streaks > 0 or c.field_across > 0 or c.field_gain > 1.0
 
-    def for_field(self, layer: Tensor, residual: Tensor, view_ids: Tensor) -> Tensor:
+    def for_field(self, layer: Tensor, residual: Tensor, view_ids: Tensor,
+                  background: Tensor | None = None) -> Tensor:
+        shaped = self._along_streaks(layer, residual, view_ids)
+        if self.config.field_colour > 0:
+            if background is None:
+                raise ValueError("rain_head.field_colour needs the field's render")
+            shaped = shaped * self._colour_weights(layer, residual, background)
+        return shaped
+
+    @torch.no_grad()
+    def _colour_weights(self, layer: Tensor, residual: Tensor, background: Tensor) -> Tensor:
+        """(B, 1, H, W) field_colour's weights; in training, the rain's colour refitted first."""
+        if self.training:
+            strong = layer.amax(1) >= COLOUR_RAIN
+            if bool(strong.any()):
+                num, den = colour_sums(residual, background, self.rain_colour, strong)
+                self.colour_sums.mul_(1 - COLOUR_FORGET).add_(torch.cat([num, den[None]]))
+                self.rain_colour.copy_((self.colour_sums[:3] / self.colour_sums[3].clamp_min(1e-6)).clamp(0, 1))
+        departed = departure(residual, background, self.rain_colour)
+        return colour_weights(departed, self.config.field_colour)[:, None]
+
+    def _along_streaks(self, layer: Tensor, residual: Tensor, view_ids: Tensor) -> Tensor:
         c = self.config
         if not self._reshapes_for_field():
             return layer

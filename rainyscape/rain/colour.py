@@ -1,0 +1,49 @@
+"""The rain's colour, and how far a residual departs from it.
+
+Rain is a translucent layer of one colour c over the scene, I = (1 - a) B + a c (the
+simulator's model, and the usual one for real streaks, which take the light around them):
+where a pixel is rain, the residual I - B points from the background B towards c. Detail the
+field has not fitted yet (a bright leaf against a dark wall) leaves a residual in the
+detail's own colour instead, off that line (docs/rain.md, "The field fitted without the
+rain that has the rain's colour").
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+# the residual's length under which its direction is not read (a pixel the field fits)
+FLAT = 1e-3
+
+
+def rain_amounts(residual: Tensor, background: Tensor, colour: Tensor) -> Tensor:
+    """(B, 1, H, W) the a >= 0 that best explains ``residual`` (B, 3, H, W) = a (c - B)."""
+    towards = colour.view(1, 3, 1, 1) - background
+    return ((residual * towards).sum(1, keepdim=True)
+            / (towards * towards).sum(1, keepdim=True).clamp_min(1e-6)).clamp_min(0)
+
+
+def departure(residual: Tensor, background: Tensor, colour: Tensor) -> Tensor:
+    """(B, H, W) the share of the residual's length off the line from the background towards
+    the rain's colour: 0 for rain, 1 for a residual that points away from c; 0 where the
+    residual is flat."""
+    towards = colour.view(1, 3, 1, 1) - background
+    off = residual - rain_amounts(residual, background, colour) * towards
+    length = residual.norm(dim=1)
+    return torch.where(length > FLAT, off.norm(dim=1) / length.clamp_min(FLAT), torch.zeros_like(length))
+
+
+def colour_sums(residual: Tensor, background: Tensor, colour: Tensor, where: Tensor) -> tuple[Tensor, Tensor]:
+    """The sums of one least-squares step for c from the pixels ``where`` (B, H, W): with each
+    pixel's a from the current ``colour``, residual = a c - a B gives c = sum a (r + a B) /
+    sum a^2. Returns (numerator (3,), denominator ())."""
+    a = rain_amounts(residual, background, colour)[:, 0][where]
+    r = residual.permute(0, 2, 3, 1)[where]
+    b = background.permute(0, 2, 3, 1)[where]
+    return (a[:, None] * (r + a[:, None] * b)).sum(0), (a * a).sum()
+
+
+def colour_weights(departed: Tensor, start: float) -> Tensor:
+    """1 where the departure is under ``start``, falling to 0 at twice it."""
+    return (2.0 - departed / start).clamp(0, 1)
