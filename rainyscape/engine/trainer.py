@@ -236,7 +236,8 @@ class Trainer:
         residual = target - cached.rgb
         for head in heads:
             if head.layer in self.layer_caches:
-                self.layer_caches[head.layer].write(views, head.for_field(layers[head.layer].detach(), residual, views, cached.rgb))
+                part = head.for_field(layers[head.layer].detach(), residual, views, cached.rgb)
+                self.layer_caches[head.layer].write(views, part)
         ctx = LossContext(cached.rgb, target, layers, cached, view_ids, self.step, name, window, record=False)
         return compute_losses(terms, ctx)
 
