@@ -42,7 +42,7 @@ from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image, view_images
 from rainyscape.losses.multiview_evidence import backproject, neighbour_colours, neighbour_table
 from rainyscape.postprocess.fusion import rain_mask
-from rainyscape.rain.colour import colour_sums, colour_weights, departure
+from rainyscape.rain.colour import colour_weights, departure, fit_colour
 
 BINS = ((0.0, 0.01), (0.01, 0.02), (0.02, 0.05), (0.05, 0.1), (0.1, float("inf")))
 FALSE_RAIN = 0.05  # predicted rain at least this on a dry pixel far from rain is false rain
@@ -83,10 +83,7 @@ def colour_gate(views: dict, starts: list[float]) -> None:
     rendered = torch.stack([v.rendered for v in views.values()]).clamp(0, 1)
     rain = torch.stack([v.rain for v in views.values()])
     residual, strong = rainy - rendered, rain.amax(1) >= 0.1
-    colour = torch.ones(3)
-    for _ in range(50):  # the head's running fit, to its fixed point
-        num, den = colour_sums(residual, rendered, colour, strong)
-        colour = (num / den.clamp_min(1e-6)).clamp(0, 1)
+    colour = fit_colour(residual, rendered, strong)  # the head's running fit, to its fixed point
     departed = departure(residual, rendered, colour)
     r = rain.amax(1)
     masks = {"false": torch.stack([false_rain(v) for v in views.values()]),

@@ -17,9 +17,12 @@ from torch import Tensor
 FLAT = 1e-3
 
 
-def rain_amounts(residual: Tensor, background: Tensor, colour: Tensor) -> Tensor:
-    """(B, 1, H, W) the a >= 0 that best explains ``residual`` (B, 3, H, W) = a (c - B)."""
-    towards = colour.view(1, 3, 1, 1) - background
+def _towards(background: Tensor, colour: Tensor) -> Tensor:
+    return colour.view(1, 3, 1, 1) - background
+
+
+def _amounts(residual: Tensor, towards: Tensor) -> Tensor:
+    """(B, 1, H, W) the a >= 0 that best explains ``residual`` (B, 3, H, W) = a ``towards``."""
     return ((residual * towards).sum(1, keepdim=True)
             / (towards * towards).sum(1, keepdim=True).clamp_min(1e-6)).clamp_min(0)
 
@@ -28,8 +31,8 @@ def departure(residual: Tensor, background: Tensor, colour: Tensor) -> Tensor:
     """(B, H, W) the share of the residual's length off the line from the background towards
     the rain's colour: 0 for rain, 1 for a residual that points away from c; 0 where the
     residual is flat."""
-    towards = colour.view(1, 3, 1, 1) - background
-    off = residual - rain_amounts(residual, background, colour) * towards
+    towards = _towards(background, colour)
+    off = residual - _amounts(residual, towards) * towards
     length = residual.norm(dim=1)
     return torch.where(length > FLAT, off.norm(dim=1) / length.clamp_min(FLAT), torch.zeros_like(length))
 
@@ -38,10 +41,20 @@ def colour_sums(residual: Tensor, background: Tensor, colour: Tensor, where: Ten
     """The sums of one least-squares step for c from the pixels ``where`` (B, H, W): with each
     pixel's a from the current ``colour``, residual = a c - a B gives c = sum a (r + a B) /
     sum a^2. Returns (numerator (3,), denominator ())."""
-    a = rain_amounts(residual, background, colour)[:, 0][where]
+    a = _amounts(residual, _towards(background, colour))[:, 0][where]
     r = residual.permute(0, 2, 3, 1)[where]
     b = background.permute(0, 2, 3, 1)[where]
     return (a[:, None] * (r + a[:, None] * b)).sum(0), (a * a).sum()
+
+
+def fit_colour(residual: Tensor, background: Tensor, where: Tensor, steps: int = 100) -> Tensor:
+    """The rain's colour (3,) fitted from white on the pixels ``where`` by ``steps`` of
+    :func:`colour_sums` (alternating steps: slow along c itself, so many of them)."""
+    colour = torch.ones(3, device=residual.device)
+    for _ in range(steps):
+        num, den = colour_sums(residual, background, colour, where)
+        colour = (num / den.clamp_min(1e-6)).clamp(0, 1)
+    return colour
 
 
 def colour_weights(departed: Tensor, start: float) -> Tensor:
