@@ -19,7 +19,7 @@ from rainyscape.config import method_config
 from rainyscape.engine.loss_sum import compute_losses
 from rainyscape.engine.pipeline import build_pipeline
 from rainyscape.errors import ConfigError
-from rainyscape.fields.gaussians.densify import DensifySchedule
+from rainyscape.fields.gaussians.densify import DensifySchedule, ramped_cap
 from rainyscape.fields.gaussians.field import GaussianField, growth_cap
 from rainyscape.fields.gaussians.ops import replace_params
 from rainyscape.fields.gaussians.ply import read_ply
@@ -251,6 +251,36 @@ def test_grow_clones_small_and_splits_large(tiny_scene):
     assert torch.allclose(children_scales, expected)
     field.sync_param_groups()
     assert all(opts[g.name].param_groups[0]["params"][0] is g.params[0] for g in field._groups.values())
+
+
+def test_ramped_cap():
+    assert ramped_cap(50_000, 0.5, 1.0) == 25_000  # half the window: half the cap
+    assert ramped_cap(50_000, 0.25, 0.5) == 25_000
+    assert ramped_cap(50_000, 0.9, 0.5) == 50_000  # past the ramp: the whole cap
+    assert ramped_cap(50_000, 0.1, 0.0) == 50_000  # no ramp
+    assert ramped_cap(0, 0.5, 1.0) == 0  # no cap stays none
+
+
+def test_ramped_cap_holds_growth_back_early(tiny_scene):
+    """With cap_ramp, a refinement early in the window grows nothing past the ramp's share;
+    later the same candidates grow up to the cap."""
+    field = make_field(tiny_scene, init_points=200, max_gaussians=400, cap_ramp=1.0, grow_grad2d=0.0,
+                       refine_start=1, refine_every=1, refine_stop=100, reference_iters=100)
+    opts = adam_for(field)
+    dens = field.callbacks()[0].strategy
+    n = field.num_gaussians
+
+    def refine_at(step: int) -> None:
+        dens.grad2d = torch.ones(field.num_gaussians)
+        dens.count = torch.ones(field.num_gaussians)
+        dens.refine(train_state(opts, step=step, max_iters=100), field.params)
+
+    refine_at(29)  # 30 % of the window: at most 120, fewer than the 200 there are
+    assert field.num_gaussians == n
+    refine_at(74)  # 75 %: up to 300
+    assert field.num_gaussians == 300
+    refine_at(98)  # 99 %: up to 396
+    assert field.num_gaussians == 396
 
 
 def test_prune_and_opacity_reset(tiny_scene):

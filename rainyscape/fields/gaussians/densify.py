@@ -114,19 +114,32 @@ def mean_grad2d_statistic(output: RenderOutput, absgrad: bool = False) -> tuple[
     return (grad * scale).norm(dim=-1) * visible, visible
 
 
+def ramped_cap(cap: int, progress: float, ramp: float) -> int:
+    """The Gaussians allowed at ``progress`` (completed steps / the densification window's
+    stop) when the cap ``cap`` rises in proportion over the first ``ramp`` of the window
+    (0: the whole cap from the start; a cap of 0 stays none). The count then grows over the
+    window, as the uncapped 3DGS schedule grows it, instead of filling the cap from the
+    gradients of its first refinements (in a rain method, before its rain head starts)."""
+    if cap <= 0 or ramp <= 0:
+        return cap
+    return int(cap * min(1.0, progress / ramp))
+
+
 class DefaultStrategy(Strategy):
     """3DGS's adaptive density control: clone small and split large Gaussians whose mean
     image-plane gradient is high, prune transparent (and, after the first opacity reset,
-    large) ones, reset opacities periodically; at most ``max_gaussians`` (0: no cap)."""
+    large) ones, reset opacities periodically; at most ``max_gaussians`` (0: no cap), or, with
+    ``cap_ramp`` above 0, at most the cap's share that :func:`ramped_cap` allows at the step."""
 
     def __init__(self, schedule, grow_grad2d: float, grow_scale3d: float, prune_opacity: float,
-                 prune_scale3d: float, max_gaussians: int, scene_extent: float):
+                 prune_scale3d: float, max_gaussians: int, scene_extent: float, cap_ramp: float = 0.0):
         self.schedule = schedule  # max_iters -> DensifySchedule
         self.grow_grad2d = grow_grad2d
         self.grow_scale3d = grow_scale3d
         self.prune_opacity = prune_opacity
         self.prune_scale3d = prune_scale3d
         self.max_gaussians = max_gaussians
+        self.cap_ramp = cap_ramp
         self.extent = scene_extent
         self.grad2d: Tensor | None = None  # (N,) sum of per-view gradient norms
         self.count: Tensor | None = None  # (N,) views in which each Gaussian was visible
@@ -161,7 +174,8 @@ class DefaultStrategy(Strategy):
             return {}
         events: dict[str, int] = {}
         if sched.refines_at(it):
-            n_clone, n_split = self.grow(params, state.optimizers)
+            cap = ramped_cap(self.max_gaussians, it / sched.stop, self.cap_ramp)
+            n_clone, n_split = self.grow(params, state.optimizers, cap)
             n_prune = self.prune(params, state.optimizers, prune_large=it > sched.reset_every)
             self.reset_stats()
             events.update(refinements=1, cloned=n_clone, split=n_split, pruned=n_prune)
@@ -171,19 +185,20 @@ class DefaultStrategy(Strategy):
         return events
 
     @torch.no_grad()
-    def grow(self, params: nn.ParameterDict, optimizers: dict) -> tuple[int, int]:
+    def grow(self, params: nn.ParameterDict, optimizers: dict, cap: int | None = None) -> tuple[int, int]:
         """Clone small and split large Gaussians whose mean gradient exceeds the threshold.
 
         Returns (cloned, split). Splitting replaces one Gaussian by two samples from it
-        with scales / 1.6. With ``max_gaussians`` set, only the highest-gradient
-        candidates that fit are grown."""
+        with scales / 1.6. Under a cap (``cap``, else ``max_gaussians``; 0: none), only the
+        highest-gradient candidates that fit are grown."""
+        cap = self.max_gaussians if cap is None else cap
         n = params["means"].shape[0]
         if self.grad2d is None or len(self.grad2d) != n:
             return 0, 0
         avg = self.grad2d / self.count.clamp_min(1)
         high = avg > self.grow_grad2d
-        if self.max_gaussians > 0:
-            room = max(self.max_gaussians - n, 0)
+        if cap > 0:
+            room = max(cap - n, 0)
             if int(high.sum()) > room:
                 chosen = torch.topk(torch.where(high, avg, -1.0), room).indices
                 high = torch.zeros_like(high)

@@ -185,6 +185,9 @@ class GaussianField(Field):
         prune_scale3d: float = bounded(0.1, 0.0)
         max_gaussians: int = bounded(0, 0)  # growth stops at this many (0: no limit) ...
         pixels_per_gaussian: int = bounded(0, 0)  # ... or at training pixels / this, if fewer (0: off)
+        # ... and, above 0, that cap reached only at this share of the densification window,
+        # in proportion to the steps (densify.ramped_cap; 0: the whole cap from the start)
+        cap_ramp: float = bounded(0.0, 0.0, 1.0)
         seed: int = 0  # initial subset / random Gaussians
 
     def __init__(self, config: "GaussianField.Config | None", scene: SceneData):
@@ -292,7 +295,7 @@ class GaussianField(Field):
             return MCMCStrategy(self.schedule, self.max_gaussians or MCMC_DEFAULT_CAP, c.mcmc_min_opacity,
                                 c.mcmc_grow_rate, c.mcmc_noise_lr, c.opacity_reg, c.scale_reg)
         return DefaultStrategy(self.schedule, c.grow_grad2d, c.grow_scale3d, c.prune_opacity,
-                               c.prune_scale3d, self.max_gaussians, self.extent)
+                               c.prune_scale3d, self.max_gaussians, self.extent, c.cap_ramp)
 
     def extra_losses(self, output: RenderOutput, target: Tensor) -> dict[str, Tensor]:
         """The strategy's regularisers (MCMC: L1 on opacities and scales)."""
