@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from rainyscape.cameras import Window
-from rainyscape.engine.run import load_run
+from rainyscape.workflow import load_trained
 
 TRANSIENT = 0.05  # |input - clean| above this in some channel: a transient's pixel
 
@@ -46,7 +46,7 @@ def main() -> None:
     parser.add_argument("--strip", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    pipe, step = load_run(args.run, device="cpu")
+    pipe, step = load_trained(args.run, device="cpu")
     pipe.field.eval()
     head = pipe.heads["rain_head"].eval()
     scene = pipe.scene

@@ -37,12 +37,12 @@ import torch
 import torch.nn.functional as F
 
 from rainyscape.cameras import Window
-from rainyscape.engine.run import load_run
 from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image, view_images
 from rainyscape.losses.multiview_evidence import backproject, neighbour_colours, neighbour_table
 from rainyscape.postprocess.fusion import rain_mask
 from rainyscape.rain.colour import colour_weights, departure, fit_colour
+from rainyscape.workflow import load_trained
 
 BINS = ((0.0, 0.01), (0.01, 0.02), (0.02, 0.05), (0.05, 0.1), (0.1, float("inf")))
 FALSE_RAIN = 0.05  # predicted rain at least this on a dry pixel far from rain is false rain
@@ -109,8 +109,8 @@ def main() -> None:
     ap.add_argument("--decoy-box", type=int, default=15)
     ap.add_argument("--colour", type=float, nargs="*", default=[], help="field_colour gates: their starts")
     args = ap.parse_args()
-    pipeline, _ = load_run(args.run_dir, device="cpu")
-    plain = load_run(args.plain, device="cpu")[0] if args.plain else None
+    pipeline, _ = load_trained(args.run_dir, device="cpu")
+    plain = load_trained(args.plain, device="cpu")[0] if args.plain else None
     scene = pipeline.scene
     if scene.clean_images is None or scene.rain_layers is None or pipeline.rain_head is None:
         raise SystemExit(f"{args.run_dir}: needs a rain head and a scene with clean views and rain layers")

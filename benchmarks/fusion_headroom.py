@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from rainyscape.engine.run import load_run
+from rainyscape.workflow import load_trained
 from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image
 from rainyscape.imaging.metrics import psnr
@@ -45,7 +45,7 @@ def view_rows(rendered: torch.Tensor, rainy: torch.Tensor, clean: torch.Tensor, 
 
 
 def run_rows(run_dir: Path) -> tuple[str, dict]:
-    pipeline, _ = load_run(run_dir, device="cpu")
+    pipeline, _ = load_trained(run_dir, device="cpu")
     scene = pipeline.scene
     if scene.clean_images is None or scene.rain_layers is None:
         raise SystemExit(f"{run_dir}: its scene has no clean images or rain layers (a simulated scene is needed)")

@@ -17,14 +17,13 @@ from pathlib import Path
 
 import torch
 
-from rainyscape.engine.run import load_run
 from rainyscape.eval.protocol import CONTROL_SEED, RAIN_PIXEL
 from rainyscape.eval.views import view_images
 from rainyscape.imaging.metrics import psnr
 from rainyscape.postprocess.fusion import THRESHOLD_RULES, fuse, rain_mask
 from rainyscape.postprocess.rain_mask_fusion import RainMaskFusion
 from rainyscape.postprocess.streak_fusion import StreakFusion
-from rainyscape.workflow import complete_scene
+from rainyscape.workflow import load_trained
 
 
 def fusions(has_rain: bool) -> dict:
@@ -36,7 +35,7 @@ def fusions(has_rain: bool) -> dict:
 
 def run_rows(run_dir: Path) -> dict:
     """Mean over the run's training views of each fusion's PSNR, control PSNR and coverage."""
-    pipeline, _ = load_run(run_dir, device="cpu", prepare_scene=complete_scene)
+    pipeline, _ = load_trained(run_dir, device="cpu")
     scene = pipeline.scene
     if scene.clean_images is None or scene.rain_layers is None:
         raise SystemExit(f"{run_dir}: its scene has no clean views or rain layers")

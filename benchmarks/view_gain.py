@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from rainyscape.engine.run import load_run
+from rainyscape.workflow import load_trained
 from rainyscape.eval.views import render_image
 from rainyscape.imaging.metrics import psnr
 
@@ -35,7 +35,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("run_dir")
     parser.add_argument("--json", default="")
     args = parser.parse_args(argv)
-    pipeline, _ = load_run(Path(args.run_dir), device="cpu")
+    pipeline, _ = load_trained(Path(args.run_dir), device="cpu")
     scene = pipeline.scene
     references = scene.clean_images if scene.clean_images is not None else scene.images
     rows = []

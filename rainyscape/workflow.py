@@ -20,7 +20,8 @@ import time
 from pathlib import Path
 
 from rainyscape.config import PipelineConfig
-from rainyscape.engine.run import Run, RunResult, open_run
+from rainyscape.engine.pipeline import Pipeline
+from rainyscape.engine.run import Run, RunResult, load_run, open_run
 from rainyscape.errors import warn
 from rainyscape.eval.report import POINTS_RECORD, points_line
 from rainyscape.scene import SceneData
@@ -68,6 +69,16 @@ def complete_scene(cfg: PipelineConfig, scene: SceneData) -> SceneData:
         warn(f"triangulating sparse points failed ({type(exc).__name__}: {exc}); the field "
              "starts without them")
         return dataclasses.replace(scene, points_source=f"none (triangulation failed: {exc})")
+
+
+def load_trained(run_dir: Path, device: str = "auto", step: int | None = None,
+                 data: str | Path | None = None, postprocess=()) -> tuple[Pipeline, int]:
+    """A trained run's pipeline and checkpoint step, its scene completed as training completed
+    it (:func:`complete_scene`: a grid field's box or a Gaussian field's start from points
+    triangulated when the scene has none, else the lattice would not fit the checkpoint).
+    What rs-eval, rs-render, rs-export, rs-bench and the benchmark scripts load runs with."""
+    return load_run(Path(run_dir), device, step, data=data, prepare_scene=complete_scene,
+                    postprocess=postprocess)
 
 
 def points_record(cfg: PipelineConfig, scene: SceneData) -> dict:

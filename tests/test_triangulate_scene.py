@@ -95,11 +95,11 @@ def test_a_scene_with_points_keeps_them(fern_dir, cache):
     assert not cache.exists()
 
 
-def _train(fern_dir: Path, out: Path, *extra: str):
+def _train(fern_dir: Path, out: Path, *extra: str, method: str = "3dgs"):
     from rainyscape.config import method_config
     from rainyscape.workflow import train_and_evaluate
 
-    cfg = method_config("3dgs", [f"data={fern_dir}", "dataparser.downscale=16", "trainer.max_iters=2",
+    cfg = method_config(method, [f"data={fern_dir}", "dataparser.downscale=16", "trainer.max_iters=2",
                                  f"trainer.output_dir={out}", "trainer.device=cpu", "trainer.progress=false",
                                  "trainer.eval_every=0", "trainer.final_eval_views=1", *extra])
     return train_and_evaluate(cfg).run_dir
@@ -170,3 +170,18 @@ def test_rs_bench_refuses_ground_truth_depth_points():
     with pytest.raises(ConfigError, match="points_from_depth=true starts 3DGS from the simulator's ground-truth"):
         plan_bench(BenchOptions(methods="3dgs", scenes="yard"),
                    ["dataparser=maya-csv", "dataparser.points_from_depth=true"])
+
+
+def test_a_grid_run_boxed_by_triangulated_points_reloads_with_them(fern_dir, cache, tmp_path):
+    """The grid's lattice is shaped to the points' box, so a trained run is rebuilt from the
+    scene completed as training completed it (workflow.load_trained); the bare scene's box
+    would not fit the checkpoint, and that is one line naming it."""
+    from rainyscape.engine.run import load_run
+    from rainyscape.errors import RainyScapeError
+    from rainyscape.workflow import load_trained
+
+    run = _train(fern_dir, tmp_path / "runs", "field.layout=contract", method="nerf")  # box=auto
+    pipeline, step = load_trained(run, device="cpu")
+    assert step == 2 and pipeline.scene.points is not None and len(pipeline.scene.points) >= 100
+    with pytest.raises(RainyScapeError, match="does not fit this run's config"):
+        load_run(run, device="cpu")

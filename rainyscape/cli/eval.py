@@ -46,16 +46,15 @@ def main(argv: list[str]) -> int:
     if args.help:
         return print_help(COMMAND)
     folder, opts = run_dir(args, COMMAND), args.options
-    from rainyscape.engine.run import load_run
-    from rainyscape.workflow import complete_scene
+    from rainyscape.workflow import load_trained
     from rainyscape.engine.run_folder import RunFolder
     from rainyscape.eval.protocol import evaluate_pipeline, write_metrics
     from rainyscape.formats.output import check_writable
 
     check_writable(folder, "rs-eval writes metrics.json, report.html and renders/strips there")
 
-    pipeline, step = load_run(folder, opts.device, opts.step, data=opts.data, prepare_scene=complete_scene,
-                              postprocess=args.overrides)
+    pipeline, step = load_trained(folder, opts.device, opts.step, data=opts.data,
+                                  postprocess=args.overrides)
     print(f"evaluating every view ({pipeline.scene.num_images}) of {folder} at step {step}",
           file=sys.stderr)
     metrics = evaluate_pipeline(pipeline, folder)

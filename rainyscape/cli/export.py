@@ -59,11 +59,10 @@ def main(argv: list[str]) -> int:
     out = Path(opts.out).expanduser() if opts.out else folder / "export"
     check_output_folder(out, opts.force, WRITES)  # before the run is loaded
     from rainyscape.components import PlyExportable
-    from rainyscape.engine.run import load_run
-    from rainyscape.workflow import complete_scene
+    from rainyscape.workflow import load_trained
     from rainyscape.eval import export
 
-    pipeline, step = load_run(folder, opts.device, data=opts.data, prepare_scene=complete_scene)
+    pipeline, step = load_trained(folder, opts.device, data=opts.data)
     what = opts.what
     if what == "auto":
         what = "gaussians" if isinstance(pipeline.field, PlyExportable) else "mesh"

@@ -46,14 +46,13 @@ def main(argv: list[str]) -> int:
     if args.help:
         return print_help(COMMAND)
     folder, opts = run_dir(args, COMMAND), args.options
-    from rainyscape.engine.run import load_run
-    from rainyscape.workflow import complete_scene
+    from rainyscape.workflow import load_trained
     from rainyscape.eval.report import write_report
     from rainyscape.formats.output import check_writable
 
     check_writable(folder, "rs-render writes renders/ and report.html there")
 
-    pipeline, step = load_run(folder, opts.device, data=opts.data, prepare_scene=complete_scene)
+    pipeline, step = load_trained(folder, opts.device, data=opts.data)
     if opts.embedding_study:
         from rainyscape.eval.embedding import write_embedding_study
 

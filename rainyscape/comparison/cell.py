@@ -82,9 +82,8 @@ def share_run(source: Path, output_dir: Path, cfg) -> RunFolder:
     """A copy of the finished run ``source`` (another cell's, whose training was this cell's:
     comparison/sharing.py) under ``output_dir``, naming this cell's scene and evaluated on it.
     Built in a hidden folder and moved into place once evaluated."""
-    from rainyscape.engine.run import load_run
     from rainyscape.eval.protocol import evaluate_pipeline, write_metrics
-    from rainyscape.workflow import complete_scene
+    from rainyscape.workflow import load_trained
 
     rel = source.relative_to(source.parents[2])  # <scene>/<method>/<timestamp>
     partial = output_dir / ".shared-partial"
@@ -92,7 +91,7 @@ def share_run(source: Path, output_dir: Path, cfg) -> RunFolder:
     shutil.copytree(source, partial / rel, ignore=shutil.ignore_patterns(RunFolder.LOCK))
     copy = RunFolder(partial / rel)
     copy.save_config(dataclasses.replace(copy.config(), data=cfg.data))
-    pipeline, step = load_run(copy.path, cfg.trainer.device, prepare_scene=complete_scene)
+    pipeline, step = load_trained(copy.path, cfg.trainer.device)
     print(f"the run of {source} trained this cell's ceiling; evaluating it on {cfg.data}", flush=True)
     metrics = evaluate_pipeline(pipeline, copy.path)
     metrics["step"] = step
