@@ -12,7 +12,9 @@ from rainyscape.errors import ConfigError
 from rainyscape.losses.agr import AdaptiveGradientRotation, agr_loss, mean_abs_derivative
 from rainyscape.imaging.gradients import directional_derivative, image_gradients
 from rainyscape.losses.l1_ssim import L1SSIM
-from rainyscape.losses.rain_losses import Likelihood, Reconstruction, TotalVariation, dry_weight
+from rainyscape.losses.photometric import Photometric
+from rainyscape.losses.rain_losses import (Likelihood, Reconstruction, TotalVariation, dry_weight,
+                                          reconstruction_loss)
 from rainyscape.testing.streaks import streak_layer, textured_background
 
 
@@ -31,6 +33,37 @@ def _tiny():
 def test_reconstruction_by_hand():
     target, rendered, rain = _tiny()
     assert float(Reconstruction()(_ctx(rendered, target, rain))) == pytest.approx((1 + 1 + 4 + 0) / 4)
+
+
+def test_brighter_pixels_weigh_less_only_where_rain_is_a_constant():
+    target, rendered, rain = _tiny()  # residual [[1, -1], [2, 0]]: two pixels brighter than B + R
+    term = Reconstruction(Reconstruction.Config(brighter=0.25))
+    # the field's rays: R read from the head's cache, a constant
+    assert float(term(_ctx(rendered, target, rain))) == pytest.approx((0.25 * 1 + 1 + 0.25 * 4 + 0) / 4)
+    # where the head learns from the term (R carries gradient), the paper's term unchanged
+    learning = rain.clone().requires_grad_(True)
+    assert float(term(_ctx(rendered, target, learning)).detach()) == pytest.approx((1 + 1 + 4 + 0) / 4)
+    # the warm-up's photometric term on the input alone, residual [[2, 0], [3, 1]]
+    plain = Photometric(Photometric.Config(brighter=0.25))
+    assert float(plain(_ctx(rendered, target, None))) == pytest.approx(0.25 * (4 + 0 + 9 + 1) / 4)
+
+
+def test_brighter_weight_fits_a_point_nearer_its_dry_views():
+    # one 3D point seen dry in three views and brightened by rain in the fourth: the least-squares
+    # fit is their mean, with the brighter views weighted less it stays nearer the dry value
+    seen = torch.tensor([0.5, 0.5, 0.5, 0.9]).reshape(4, 1, 1, 1).expand(4, 3, 1, 1)
+    fits = {}
+    for brighter in (1.0, 0.5):
+        b = torch.zeros(1, requires_grad=True)
+        opt = torch.optim.SGD([b], lr=0.5)
+        for _ in range(300):
+            opt.zero_grad()
+            loss = reconstruction_loss(seen - b.expand(4, 3, 1, 1), brighter)
+            loss.backward()
+            opt.step()
+        fits[brighter] = float(b.detach())
+    assert fits[1.0] == pytest.approx(0.6, abs=1e-4)
+    assert fits[0.5] == pytest.approx((3 * 0.5 + 0.5 * 0.9) / 3.5, abs=1e-4)
 
 
 def test_likelihood_by_hand_and_variance_detached():

@@ -29,9 +29,14 @@ def likelihood_loss(residual: Tensor, eps: float = 1e-6) -> Tensor:
     return residual.pow(2).mean() / (var + eps)
 
 
-def reconstruction_loss(residual: Tensor) -> Tensor:
-    """mean(r^2)."""
-    return residual.pow(2).mean()
+def reconstruction_loss(residual: Tensor, brighter: float = 1.0) -> Tensor:
+    """mean(w r^2), w = ``brighter`` where the target is brighter than the fit (the pixel's
+    channel mean of r above 0), else 1."""
+    squares = residual.pow(2)
+    if brighter == 1.0:
+        return squares.mean()
+    w = torch.where(residual.detach().mean(1, keepdim=True) > 0, brighter, 1.0)
+    return (w * squares).mean()
 
 
 def dry_weight(layer: Tensor, scale: float) -> Tensor:
@@ -81,13 +86,16 @@ class Reconstruction(Loss):
 
     @dataclass
     class Config:
-        pass
+        # where R is a constant (the field's single rays against the head's cached R), the
+        # weight of pixels the input shows brighter than B + R: rain only adds light
+        brighter: float = bounded(1.0, 0.0, 1.0)
 
     def __init__(self, config: "Reconstruction.Config | None" = None):
         super().__init__(config or self.Config())
 
     def __call__(self, ctx: LossContext) -> Tensor:
-        return reconstruction_loss(decomposition_residual(ctx))
+        fixed = ctx.rain is not None and not ctx.rain.requires_grad
+        return reconstruction_loss(decomposition_residual(ctx), self.config.brighter if fixed else 1.0)
 
 
 class TotalVariation(Loss):

@@ -13,6 +13,11 @@ and budget, read from it, never copied) with the parts both fields share
 - R kept for the field only where the residual has the rain's colour (``FIELD_COLOUR``;
   measured on the CPU recipes only).
 
+``rainyscape-plus-nerf`` adds, on the grid field:
+
+- rain only adds light: in the warm-up the pixels the input shows brighter than the render
+  weigh ``WARMUP_BRIGHTER``, so the head starts against a field that holds less of the rain.
+
 ``rainyscape-plus`` adds, on the Gaussians:
 
 - multi-view evidence for the rain head: what a pixel shows beyond its neighbours' views,
@@ -73,6 +78,15 @@ FLOATER_WEIGHT = 5.0
 # pixels lower on both.
 FIELD_COLOUR = 0.1
 
+# Rain only adds light: in the warm-up (the field alone against the input) a pixel the input
+# shows brighter than the render weighs WARMUP_BRIGHTER, so a 3D point is fitted nearer the
+# views that see it dry than the plain mean of its views; the joint phase's terms stay the
+# paper's and fit out the bias this leaves on dry pixels. The same weight on the joint
+# phase's rays too (``losses.reconstruction.brighter``) follows the darkest of a point's
+# targets wherever R is false rain: light rain's dry pixels lost up to 1.3 dB (docs/rain.md,
+# "Rain only adds light").
+WARMUP_BRIGHTER = 0.5
+
 # Rain falls: the AGR loss and the head's lines for the field look for the streaks' direction within
 # FALL_TILT degrees of the world's down in each view (rainyscape.cameras.down_directions; the
 # cpu set's wind slants them by up to 30 degrees, perspective by more), so that a view whose
@@ -108,9 +122,16 @@ rainyscape_plus = MethodSpec(
     gpu=GS_GPU + PAPER_RAIN_HEAD_GPU + PAPER_LATENT_GPU,
 )
 
+
+def _rainyscape_plus_nerf() -> PipelineConfig:
+    cfg = with_plus_parts(rainyscape_nerf.config, "rainyscape-plus-nerf")
+    cfg.losses["photometric"].options = {**cfg.losses["photometric"].options, "brighter": WARMUP_BRIGHTER}
+    return cfg
+
+
 rainyscape_plus_nerf = MethodSpec(
     name="rainyscape-plus-nerf",
-    description="rainyscape-nerf plus multi-view rain evidence for the rain head, capped TV, the rain direction looked for near each view's down, and on a CPU a full-resolution rain head whose R the field is fitted without, less the edges that run across the rain, raised where the residual stands out across it and kept only where the residual has the rain's colour",
-    config=with_plus_parts(rainyscape_nerf.config, "rainyscape-plus-nerf"),
+    description="rainyscape-nerf plus a warm-up in which pixels brighter than the render weigh half (rain only adds light), capped TV, the rain direction looked for near each view's down, and on a CPU a full-resolution rain head whose R the field is fitted without, less the edges that run across the rain, raised where the residual stands out across it and kept only where the residual has the rain's colour",
+    config=_rainyscape_plus_nerf(),
     gpu=list(rainyscape_nerf.gpu) + PAPER_LATENT_GPU,
 )
