@@ -18,13 +18,18 @@ layers, over its training views:
   vote is what stays: rain a surface shows in every view is not rain. With ``--decoy S`` the
   vote is taken against chance: less the same vote with the neighbours' R shifted by S px,
   averaged over ``--decoy-box`` px (docs/rain.md, "False rain on light rain");
+- with ``--reach``: the multi-view rain evidence that ``mv-rain`` pulls R towards, with each
+  neighbour's brightest within each given reach (losses/multiview_evidence.py): its mean on
+  the false rain and on the true rain's pixels (next to R and the true rain there), and its
+  correlation with the true rain, and with ``--reach-gain`` the term's cap of the evidence at
+  the pixel by that many times it (docs/rain.md, "The neighbours' brightest within a pixel");
 - with ``--colour``: how much of R the rain head's ``field_colour`` gate would keep at each
   start given, on the false rain and on the true rain's pixels, with the rain's colour fitted
   on the run's R of at least 0.1 (rain/colour.py; docs/rain.md, "The field fitted without the
   rain that has the rain's colour").
 
     python benchmarks/false_rain.py RUN_DIR [--plain RUN_DIR] [--dilate 3 5] [--quantile 0 0.5] [--decoy 8]
-        [--colour 0.1 0.2]
+        [--colour 0.1 0.2] [--reach 0 1 2] [--reach-gain 2]
 """
 
 from __future__ import annotations
@@ -39,7 +44,9 @@ import torch.nn.functional as F
 from rainyscape.cameras import Window
 from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image, view_images
-from rainyscape.losses.multiview_evidence import backproject, neighbour_colours, neighbour_table
+from rainyscape.losses.multiview_evidence import (backproject, brightest_within, evidence_over,
+                                                  evidence_with_reach, neighbour_colours, neighbour_median,
+                                                  neighbour_table)
 from rainyscape.postprocess.fusion import rain_mask
 from rainyscape.rain.colour import colour_weights, departure, fit_colour
 from rainyscape.workflow import load_trained
@@ -96,6 +103,39 @@ def colour_gate(views: dict, starts: list[float]) -> None:
         print(f"  start {start}: {share['false']:.2f} / {share['true']:.2f}")
 
 
+def evidence_at_reach(views: dict, scene, reaches: list[int], gain: float, k: int) -> None:
+    """Print mv-rain's evidence at each reach (with ``reach_gain`` ``gain``) on the false rain
+    and the true rain's pixels."""
+    images = scene.images.permute(0, 3, 1, 2).float() / 255.0
+    depth = torch.full((scene.num_images, 1, scene.height, scene.width), float("nan"))
+    for i, v in views.items():
+        depth[i] = v.depth
+    neighbours = neighbour_table(scene.cameras.centers, list(views), k)
+    print("mv-rain's evidence at each reach: mean on the false rain (R there) / on the true rain's pixels "
+          "(the true rain there), correlation with the true rain")
+    for reach in reaches:
+        stack = torch.cat([images, brightest_within(images, reach)], 1)
+        sums = {"false": [0.0, 0.0, 0], "true": [0.0, 0.0, 0]}
+        pairs = []
+        for i, v in views.items():
+            cam = scene.cameras[[i]]
+            points = backproject(cam, Window.full(cam), depth[i:i + 1])
+            colours, valid = neighbour_colours(points, neighbours[[i]], scene.cameras, stack, depth)
+            ref, defined = neighbour_median(colours, valid)
+            at_point, within = (evidence_over(images[i:i + 1], r, defined) for r in (ref[:, :3], ref[:, 3:]))
+            evidence = (evidence_with_reach(at_point, within, gain) if reach else at_point)[0].mean(0)
+            inside = defined[0, 0]
+            for key, m, layer in (("false", false_rain(v), v.rain), ("true", wet(v), v.true_rain)):
+                m = m & inside
+                sums[key][0] += float(evidence[m].sum()); sums[key][1] += float(layer.mean(0)[m].sum())
+                sums[key][2] += int(m.sum())
+            pairs.append(torch.stack([evidence[inside], v.true_rain.mean(0)[inside]]))
+        corr = float(torch.corrcoef(torch.cat(pairs, 1).double())[0, 1])
+        mean = {key: (a / max(n, 1), b / max(n, 1)) for key, (a, b, n) in sums.items()}
+        print(f"  reach {reach}: {mean['false'][0]:.3f} ({mean['false'][1]:.3f}) / "
+              f"{mean['true'][0]:.3f} ({mean['true'][1]:.3f}), {corr:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run_dir", type=Path)
@@ -108,6 +148,8 @@ def main() -> None:
                          "by this many pixels, averaged over --decoy-box pixels (0: no decoy)")
     ap.add_argument("--decoy-box", type=int, default=15)
     ap.add_argument("--colour", type=float, nargs="*", default=[], help="field_colour gates: their starts")
+    ap.add_argument("--reach", type=int, nargs="*", default=[], help="mv-rain's evidence at these reaches (px)")
+    ap.add_argument("--reach-gain", type=float, default=0.0, help="... with this reach_gain")
     args = ap.parse_args()
     pipeline, _ = load_trained(args.run_dir, device="cpu")
     plain = load_trained(args.plain, device="cpu")[0] if args.plain else None
@@ -154,6 +196,8 @@ def main() -> None:
         print(f"  {key}: {n} px: " + ", ".join(f"{a / max(n, 1):.3f}" for a in sums))
     if args.colour:
         colour_gate(views, args.colour)
+    if args.reach:
+        evidence_at_reach(views, scene, args.reach, args.reach_gain, args.views)
     if not args.dilate:
         return
     rain = torch.zeros(scene.num_images, 3, scene.height, scene.width)

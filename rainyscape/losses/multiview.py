@@ -23,20 +23,28 @@ from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.metrics import ssim_map
-from rainyscape.losses.multiview_evidence import (backproject, evidence_over, neighbour_colours,
-                                                  neighbour_median, neighbour_table)
+from rainyscape.losses.multiview_evidence import (backproject, brightest_within, evidence_over,
+                                                  evidence_with_reach, neighbour_colours, neighbour_median,
+                                                  neighbour_table)
 from rainyscape.losses.rain_losses import dry_weight
 from rainyscape.scene import SceneData
 
 
 class _Evidence:
     """The scene's cameras, training images, neighbour table and every view's last rendered
-    depth (for the occlusion test: filled as batches render them); the evidence of a batch."""
+    depth (for the occlusion test: filled as batches render them); the evidence of a batch.
+
+    With a ``reach`` the evidence is also taken against each neighbour's brightest within that
+    many pixels: that evidence alone, or with ``reach_gain`` the evidence at the projection
+    capped by it (multiview_evidence.py's ``evidence_with_reach``)."""
 
     def __init__(self, scene: SceneData, device: torch.device, views: int, min_views: int,
-                 occlusion_tolerance: float):
+                 occlusion_tolerance: float, reach: int = 0, reach_gain: float = 0.0):
         self.cameras = scene.cameras.to(device)
-        self.images = scene.images.to(device).permute(0, 3, 1, 2).float() / 255.0
+        images = scene.images.to(device).permute(0, 3, 1, 2).float() / 255.0
+        # one stack, so each neighbour is read once for both: channels 3: are the brightest
+        self.images = images if reach <= 0 else torch.cat([images, brightest_within(images, reach)], 1)
+        self.reach_gain = reach_gain
         self.neighbours = neighbour_table(self.cameras.centers, list(scene.train_indices), views)
         self.min_views = min_views
         self.tolerance = occlusion_tolerance
@@ -44,12 +52,21 @@ class _Evidence:
 
     def __call__(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
         """The rain evidence of the batch (B, 3, h, w) and where it is defined (B, 1, h, w)."""
-        ref, defined = self.reference(ctx)
-        return evidence_over(ctx.target, ref, defined), defined
+        ref, defined = self._medians(ctx)
+        evidence = evidence_over(ctx.target, ref[:, :3], defined)
+        if ref.shape[1] == 3:
+            return evidence, defined
+        within = evidence_over(ctx.target, ref[:, 3:], defined)
+        return evidence_with_reach(evidence, within, self.reach_gain), defined
 
     def reference(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
         """The median of what the neighbour views see at the batch's pixels (B, 3, h, w; NaN
-        where undefined) and where it is defined (B, 1, h, w); once per batch (``ctx.memo``)."""
+        where undefined) and where it is defined (B, 1, h, w)."""
+        ref, defined = self._medians(ctx)
+        return ref[:, :3], defined
+
+    def _medians(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
+        """The neighbours' medians of every channel of the stack; once per batch (``ctx.memo``)."""
         return ctx.memoized((id(self), "reference"), lambda: self._reference(ctx))
 
     def _reference(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
@@ -151,6 +168,17 @@ class MultiviewRain(_WithEvidence):
         # neighbours then say how much, never where (an edge the reprojection misses is not
         # made rain). 0: every pixel votes.
         where_rain: float = bounded(0.0, 0.0, 1.0)
+        # A neighbour offers the brightest it sees within this many pixels of the projection:
+        # an edge the rendered depth reprojects a pixel or two off is then no rain. 0: the
+        # pixel it projects to.
+        reach: int = bounded(0, 0, 8)
+        reach_gain: float = bounded(0.0, 0.0, 100.0)  # above 0: the evidence at the pixel, capped at this many times the reach's
+
+    def setup(self, scene: SceneData, device: torch.device) -> None:
+        # the reach is this term's only (measured here); the anchor compares colours, which a
+        # window's brightest would bias
+        c = self.config
+        self.evidence = _Evidence(scene, device, c.views, c.min_views, c.occlusion, c.reach, c.reach_gain)
 
     def __call__(self, ctx: LossContext) -> Tensor:
         evidence, defined = self.evidence(ctx)

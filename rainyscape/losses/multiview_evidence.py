@@ -5,8 +5,12 @@ of a batch is lifted to 3D with the field's rendered depth, projected into the k
 training views, and compared with the median of what they see there: rain is where the
 pixel is brighter than that median. A neighbour whose own depth at the projection is nearer
 than the point (an occluder in front of it, judged by that view's last rendered depth) does
-not vote; the median shrugs off the remaining odd neighbour (rainy itself). No learning is
-involved, so the evidence is there from the first joint step. Pure functions on tensors.
+not vote; the median shrugs off the remaining odd neighbour (rainy itself). With a reach of r
+pixels each neighbour offers the brightest it sees within r pixels of the projection: rain
+only adds light, so a pixel is rain only where it is brighter than anything the neighbour
+shows nearby, and an edge a rendered depth reprojects a pixel off reads as no rain. No
+learning is involved, so the evidence is there from the first joint step. Pure functions on
+tensors.
 """
 
 from __future__ import annotations
@@ -40,8 +44,8 @@ def neighbour_colours(points: Tensor, neighbours: Tensor, cameras: Cameras, imag
                       ) -> tuple[Tensor, Tensor]:
     """What neighbour views see at ``points``.
 
-    points (B, h, w, 3), neighbours (B, k) view indices, images (N, 3, H, W) float.
-    Returns colours (B, k, 3, h, w) and validity (B, k, h, w): in front of the camera, inside
+    points (B, h, w, 3), neighbours (B, k) view indices, images (N, C, H, W) float.
+    Returns colours (B, k, C, h, w) and validity (B, k, h, w): in front of the camera, inside
     its image and, with ``depths`` (N, 1, H, W) z-depths of every view (NaN where unknown), not
     hidden there: the view's depth at the projection is not nearer than the point's by more
     than ``occlusion_tolerance`` of it."""
@@ -54,11 +58,19 @@ def neighbour_colours(points: Tensor, neighbours: Tensor, cameras: Cameras, imag
     grid = uv / uv.new_tensor([width, height]) * 2 - 1  # align_corners=False
     valid = (z > 1e-6) & (grid.abs() < 1).all(-1) & torch.isfinite(flat[..., 0])
     grid = torch.where(valid[..., None], grid, torch.zeros_like(grid)).reshape(b * k, h * w, 2)
-    colours = sample_views(images, neighbours.reshape(-1), grid, "bilinear").reshape(b, k, 3, h, w)
+    colours = sample_views(images, neighbours.reshape(-1), grid, "bilinear").reshape(b, k, -1, h, w)
     if depths is not None:
         seen = sample_views(depths, neighbours.reshape(-1), grid, "nearest").reshape(b, k, h * w)
         valid = valid & ~(seen < z * (1.0 - occlusion_tolerance))  # NaN (unknown) keeps the vote
     return colours, valid.reshape(b, k, h, w)
+
+
+def brightest_within(images: Tensor, reach: int) -> Tensor:
+    """``images`` (N, C, H, W) with every pixel the largest value, per channel, within ``reach``
+    pixels of it (a (2 reach + 1)^2 window; the images themselves at 0)."""
+    if reach <= 0:
+        return images
+    return F.max_pool2d(images, 2 * reach + 1, stride=1, padding=reach)
 
 
 def sample_views(stack: Tensor, views: Tensor, grid: Tensor, mode: str) -> Tensor:
@@ -80,7 +92,7 @@ def sample_views(stack: Tensor, views: Tensor, grid: Tensor, mode: str) -> Tenso
 
 
 def neighbour_median(colours: Tensor, valid: Tensor, min_views: int = 2) -> tuple[Tensor, Tensor]:
-    """The median (B, 3, h, w) of what the valid neighbours see (colours (B, k, 3, h, w), valid
+    """The median (B, C, h, w) of what the valid neighbours see (colours (B, k, C, h, w), valid
     (B, k, h, w)), and where it is defined (B, 1, h, w): at least ``min_views`` of them (the
     median is NaN elsewhere)."""
     nan = torch.full_like(colours, float("nan"))
@@ -93,6 +105,14 @@ def evidence_over(observed: Tensor, ref: Tensor, defined: Tensor) -> Tensor:
     that is ``defined`` (0 elsewhere)."""
     evidence = (observed - ref).clamp_min(0)
     return torch.where(defined & torch.isfinite(evidence), evidence, torch.zeros_like(evidence))
+
+
+def evidence_with_reach(at_point: Tensor, within: Tensor, gain: float) -> Tensor:
+    """The evidence against the neighbours' brightest within a reach (``within``), or with
+    ``gain`` > 0 the evidence against what they see at the projection itself (``at_point``)
+    capped at ``gain`` times it: a streak over a smooth background keeps its whole evidence,
+    an edge reprojected a pixel off (next to nothing within the reach) keeps little."""
+    return torch.minimum(at_point, gain * within) if gain > 0 else within
 
 
 def rain_evidence(observed: Tensor, colours: Tensor, valid: Tensor, min_views: int = 2
