@@ -44,9 +44,8 @@ import torch.nn.functional as F
 from rainyscape.cameras import Window
 from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image, view_images
-from rainyscape.losses.multiview_evidence import (backproject, brightest_within, evidence_over,
-                                                  evidence_with_reach, neighbour_colours, neighbour_median,
-                                                  neighbour_table)
+from rainyscape.losses.multiview_evidence import (backproject, brightest_within, evidence_with_reach,
+                                                  neighbour_colours, neighbour_table, rain_evidence)
 from rainyscape.postprocess.fusion import rain_mask
 from rainyscape.rain.colour import colour_weights, departure, fit_colour
 from rainyscape.workflow import load_trained
@@ -114,16 +113,17 @@ def evidence_at_reach(views: dict, scene, reaches: list[int], gain: float, k: in
     print("mv-rain's evidence at each reach: mean on the false rain (R there) / on the true rain's pixels "
           "(the true rain there), correlation with the true rain")
     for reach in reaches:
-        stack = torch.cat([images, brightest_within(images, reach)], 1)
+        stack = torch.cat([images, brightest_within(images, reach)], 1) if reach else images
         sums = {"false": [0.0, 0.0, 0], "true": [0.0, 0.0, 0]}
         pairs = []
         for i, v in views.items():
             cam = scene.cameras[[i]]
             points = backproject(cam, Window.full(cam), depth[i:i + 1])
             colours, valid = neighbour_colours(points, neighbours[[i]], scene.cameras, stack, depth)
-            ref, defined = neighbour_median(colours, valid)
-            at_point, within = (evidence_over(images[i:i + 1], r, defined) for r in (ref[:, :3], ref[:, 3:]))
-            evidence = (evidence_with_reach(at_point, within, gain) if reach else at_point)[0].mean(0)
+            evidence, defined = rain_evidence(images[i:i + 1], colours[:, :, :3], valid)
+            if reach:
+                evidence = evidence_with_reach(evidence, rain_evidence(images[i:i + 1], colours[:, :, 3:], valid)[0], gain)
+            evidence = evidence[0].mean(0)
             inside = defined[0, 0]
             for key, m, layer in (("false", false_rain(v), v.rain), ("true", wet(v), v.true_rain)):
                 m = m & inside
