@@ -23,13 +23,15 @@ layers, over its training views:
   the false rain and on the true rain's pixels (next to R and the true rain there), and its
   correlation with the true rain, and with ``--reach-gain`` the term's cap of the evidence at
   the pixel by that many times it (docs/rain.md, "The neighbours' brightest within a pixel");
+- with ``--field``: how much of R the field is fitted without (the rain head's ``for_field``
+  at the run's end), on the false rain and on the true rain's pixels;
 - with ``--colour``: how much of R the rain head's ``field_colour`` gate would keep at each
   start given, on the false rain and on the true rain's pixels, with the rain's colour fitted
   on the run's R of at least 0.1 (rain/colour.py; docs/rain.md, "The field fitted without the
   rain that has the rain's colour").
 
     python benchmarks/false_rain.py RUN_DIR [--plain RUN_DIR] [--dilate 3 5] [--quantile 0 0.5] [--decoy 8]
-        [--colour 0.1 0.2] [--reach 0 1 2] [--reach-gain 2]
+        [--colour 0.1 0.2] [--reach 0 1 2] [--reach-gain 2] [--field]
 """
 
 from __future__ import annotations
@@ -102,6 +104,22 @@ def colour_gate(views: dict, starts: list[float]) -> None:
         print(f"  start {start}: {share['false']:.2f} / {share['true']:.2f}")
 
 
+@torch.no_grad()
+def field_share(pipeline, views: dict) -> None:
+    """Print the share of R the head's ``for_field`` hands the field, on the false rain and on
+    the true rain's pixels."""
+    head = pipeline.rain_head
+    head.eval()
+    sums = {"false": [0.0, 0.0], "true": [0.0, 0.0]}
+    for i, v in views.items():
+        part = head.for_field(v.rain[None], (v.rainy - v.rendered)[None], torch.tensor([i]), v.rendered[None])[0]
+        for key, m in (("false", false_rain(v)), ("true", wet(v))):
+            sums[key][0] += float(v.rain.mean(0)[m].sum()); sums[key][1] += float(part.mean(0)[m].sum())
+    share = {k: b / a if a else float("nan") for k, (a, b) in sums.items()}
+    print(f"the field is fitted without this share of R (for_field): false rain {share['false']:.2f} / "
+          f"the true rain's pixels {share['true']:.2f}")
+
+
 def evidence_at_reach(views: dict, scene, reaches: list[int], gain: float, k: int) -> None:
     """Print mv-rain's evidence at each reach (with ``reach_gain`` ``gain``) on the false rain
     and the true rain's pixels."""
@@ -150,6 +168,7 @@ def main() -> None:
     ap.add_argument("--colour", type=float, nargs="*", default=[], help="field_colour gates: their starts")
     ap.add_argument("--reach", type=int, nargs="*", default=[], help="mv-rain's evidence at these reaches (px)")
     ap.add_argument("--reach-gain", type=float, default=0.0, help="... with this reach_gain")
+    ap.add_argument("--field", action="store_true", help="the share of R the field is fitted without")
     args = ap.parse_args()
     pipeline, _ = load_trained(args.run_dir, device="cpu")
     plain = load_trained(args.plain, device="cpu")[0] if args.plain else None
@@ -194,6 +213,8 @@ def main() -> None:
     for key, sums in amounts.items():
         n = amount_pixels[key]
         print(f"  {key}: {n} px: " + ", ".join(f"{a / max(n, 1):.3f}" for a in sums))
+    if args.field:
+        field_share(pipeline, views)
     if args.colour:
         colour_gate(views, args.colour)
     if args.reach:
