@@ -46,7 +46,7 @@ import torch.nn.functional as F
 from rainyscape.cameras import Window
 from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image, view_images
-from rainyscape.losses.multiview_evidence import (backproject, brightest_within, evidence_with_reach,
+from rainyscape.losses.multiview_evidence import (backproject, evidence_with_reach, with_brightest,
                                                   neighbour_colours, neighbour_table, rain_evidence)
 from rainyscape.postprocess.fusion import rain_mask
 from rainyscape.rain.colour import colour_weights, departure, fit_colour
@@ -131,7 +131,7 @@ def evidence_at_reach(views: dict, scene, reaches: list[int], gain: float, k: in
     print("mv-rain's evidence at each reach: mean on the false rain (R there) / on the true rain's pixels "
           "(the true rain there), correlation with the true rain")
     for reach in reaches:
-        stack = torch.cat([images, brightest_within(images, reach)], 1) if reach else images
+        stack = with_brightest(images, reach)
         sums = {"false": [0.0, 0.0, 0], "true": [0.0, 0.0, 0]}
         pairs = []
         for i, v in views.items():

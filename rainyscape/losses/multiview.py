@@ -23,9 +23,9 @@ from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.metrics import ssim_map
-from rainyscape.losses.multiview_evidence import (backproject, brightest_within, evidence_over,
-                                                  evidence_with_reach, neighbour_colours, neighbour_median,
-                                                  neighbour_table)
+from rainyscape.losses.multiview_evidence import (backproject, evidence_over, evidence_with_reach,
+                                                  neighbour_colours, neighbour_median, neighbour_table,
+                                                  with_brightest)
 from rainyscape.losses.rain_losses import dry_weight
 from rainyscape.scene import SceneData
 
@@ -42,8 +42,7 @@ class _Evidence:
                  occlusion_tolerance: float, reach: int = 0, reach_gain: float = 0.0):
         self.cameras = scene.cameras.to(device)
         images = scene.images.to(device).permute(0, 3, 1, 2).float() / 255.0
-        # one stack, so each neighbour is read once for both: channels 3: are the brightest
-        self.images = images if reach <= 0 else torch.cat([images, brightest_within(images, reach)], 1)
+        self.images = with_brightest(images, reach)  # channels 3: (if any): the brightest
         self.reach_gain = reach_gain
         self.neighbours = neighbour_table(self.cameras.centers, list(scene.train_indices), views)
         self.min_views = min_views

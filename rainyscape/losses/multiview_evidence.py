@@ -73,6 +73,12 @@ def brightest_within(images: Tensor, reach: int) -> Tensor:
     return F.max_pool2d(images, 2 * reach + 1, stride=1, padding=reach)
 
 
+def with_brightest(images: Tensor, reach: int) -> Tensor:
+    """``images`` (N, 3, H, W) with, at a reach above 0, their :func:`brightest_within` as
+    channels 3:6, so that one sampling reads both."""
+    return images if reach <= 0 else torch.cat([images, brightest_within(images, reach)], 1)
+
+
 def sample_views(stack: Tensor, views: Tensor, grid: Tensor, mode: str) -> Tensor:
     """``stack`` (N, C, H, W) read at ``grid`` (M, P, 2; normalised, align_corners=False) in
     the views ``views`` (M,): (M, C, P). Each distinct view is sampled once with all its
