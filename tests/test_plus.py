@@ -4,11 +4,13 @@ the neighbours' evidence acting."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
 
-from rainyscape.config import method_config
+from rainyscape.config import PhaseConfig, method_config
+from rainyscape.methods.rainyscape_nerf import joint_batch
 from test_render_cache import MIXED_JOINT, SMALL
 
 
@@ -27,7 +29,15 @@ def test_a_plus_method_is_its_paper_method_with_the_shared_parts(plus, paper, ow
     for key in paper_cfg.losses:
         if key not in {"tv", "agr"} | changed:
             assert plus_cfg.losses[key] == paper_cfg.losses[key], key
-    assert (plus_cfg.field, plus_cfg.phases, plus_cfg.trainer) == (paper_cfg.field, paper_cfg.phases, paper_cfg.trainer)
+    assert (plus_cfg.field, plus_cfg.trainer) == (paper_cfg.field, paper_cfg.trainer)
+    assert plus_cfg.phases["warmup"] == paper_cfg.phases["warmup"]
+    # the grid's joint step: fewer patches and more single rays, the same rays a step
+    joint, paper_joint = plus_cfg.phases["joint"], paper_cfg.phases["joint"]
+    if plus == "rainyscape-plus-nerf":
+        assert (joint.patches, joint.patch_size, joint.rays) == (4, 4, 960)
+        assert (paper_joint.patches, paper_joint.patch_size, paper_joint.rays) == (16, 4, 768)
+        joint = dataclasses.replace(joint, patches=16, rays=768)
+    assert joint == paper_joint
     # its CPU head: the latent at full resolution with four channels, the field fitted without
     # R less what runs across the streaks (found near the view's down), raised up to twice where
     # the residual stands out across them, kept only where the residual has the rain's colour;
@@ -66,3 +76,11 @@ def test_rainyscape_plus_nerf_trains_end_to_end_with_the_evidence_on_every_kind_
     for terms in joint:
         assert {"mv-rain", "cached_views.mv-rain", "tv", "agr"} <= set(terms)
         assert all(0 <= terms[k] < float("inf") for k in ("mv-rain", "cached_views.mv-rain"))
+
+
+def test_a_joint_batch_keeps_the_warm_ups_rays_in_square_patches():
+    warmup = PhaseConfig(patches=1024, patch_size=1)
+    assert joint_batch(warmup, 4, 960) == {"patches": 4, "patch_size": 4, "rays": 960}
+    assert joint_batch(warmup, 1, 0) == {"patches": 1, "patch_size": 32, "rays": 0}
+    with pytest.raises(ValueError, match="no square patch"):
+        joint_batch(warmup, 4, 900)  # 124 rays leave 31 a patch

@@ -61,3 +61,26 @@ def test_the_field_is_fitted_without_the_rain_that_has_the_rains_colour_only():
     assert float(kept[..., 8:].abs().max()) == 0.0
     assert float((head.rain_colour - RAIN).abs().max()) < 0.2  # from white, in one step
     assert "rain_colour" in head.state_dict() and "rain_colour" not in _head(scene).state_dict()
+
+
+def test_residuals_darker_in_a_channel_leave_the_colour_fit_alone():
+    """Rain adds light: detail brighter in red and darker in green and blue (a red edge the
+    field missed) pulled the fitted colour off the rain's (to 0.89 / 0.88 / 0.93 here) and,
+    within a run, to black; darker pixels alone leave no pixel to fit, and the colour stays."""
+    g = torch.Generator().manual_seed(1)
+    background = torch.rand(2, 3, 16, 16, generator=g) * 0.7
+    alpha = torch.rand(2, 1, 16, 16, generator=g) * 0.8 + 0.1
+    residual = _composite(background, alpha) - background
+    residual[..., :8, :8] = torch.tensor([0.4, -0.1, -0.1]).view(1, 3, 1, 1)
+    everywhere = torch.ones(2, 16, 16, dtype=torch.bool)
+    assert torch.allclose(fit_colour(residual, background, everywhere), RAIN, atol=2e-3)
+    assert torch.equal(fit_colour(-residual.abs(), background, everywhere), torch.ones(3))
+
+
+def test_the_heads_colour_stays_white_until_a_pixel_is_rain():
+    scene = _scene(n=1, height=16, width=16)
+    head = _head(scene, field_colour=0.1).train()
+    background = torch.full((1, 3, 16, 16), 0.5)
+    residual = torch.full((1, 3, 16, 16), -0.2)  # a field brighter than its input
+    head.for_field(torch.full((1, 3, 16, 16), 0.3), residual, torch.tensor([0]), background)
+    assert torch.equal(head.rain_colour, torch.ones(3))

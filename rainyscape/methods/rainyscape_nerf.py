@@ -48,6 +48,13 @@ def square_patch(rays: int) -> int:
     return side
 
 
+def joint_batch(warmup: PhaseConfig, patches: int, rays: int) -> dict:
+    """A joint step's batch with the rays of a ``warmup`` step: ``patches`` square patches
+    holding what ``rays`` single rays leave (the ``PhaseConfig`` fields it sets)."""
+    patch_rays = warmup.patches * warmup.patch_size ** 2 - rays
+    return {"patches": patches, "patch_size": square_patch(patch_rays // patches), "rays": rays}
+
+
 def with_rain_module(base: MethodSpec, name: str, *, weights: dict[str, float],
                      rain_head: dict, warmup_fraction: float, joint_patches: int = 1,
                      joint_rays: int = 0, field_lr_joint: float | None = None,
@@ -66,12 +73,10 @@ def with_rain_module(base: MethodSpec, name: str, *, weights: dict[str, float],
     cfg.method = name
     cfg.rain_head = ComponentConfig("rain-predictor", dict(rain_head))
     fit = cfg.phases["fit"]
-    patch_rays = fit.patches * fit.patch_size ** 2 - joint_rays
     cfg.phases = {
         "warmup": PhaseConfig(end=warmup_fraction, patches=fit.patches, patch_size=fit.patch_size),
-        "joint": PhaseConfig(patches=joint_patches, patch_size=square_patch(patch_rays // joint_patches),
-                             rays=joint_rays, heads=("rain_head",), field_lr=field_lr_joint,
-                             head_views=head_views),
+        "joint": PhaseConfig(**joint_batch(fit, joint_patches, joint_rays), heads=("rain_head",),
+                             field_lr=field_lr_joint, head_views=head_views),
     }
     cfg.losses = rain_losses(weights, agr)
     cfg.postprocess = {"rain-mask-fusion": ComponentConfig("rain-mask-fusion", dict(fusion or {})),

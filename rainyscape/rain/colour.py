@@ -38,9 +38,18 @@ def departure(residual: Tensor, background: Tensor, colour: Tensor) -> Tensor:
 
 
 def colour_sums(residual: Tensor, background: Tensor, colour: Tensor, where: Tensor) -> tuple[Tensor, Tensor]:
-    """The sums of one least-squares step for c from the pixels ``where`` (B, H, W): with each
-    pixel's a from the current ``colour``, residual = a c - a B gives c = sum a (r + a B) /
-    sum a^2. Returns (numerator (3,), denominator ())."""
+    """The sums of one least-squares step for c from the pixels ``where`` (B, H, W) whose
+    residual is brighter in every channel: with each pixel's a from the current ``colour``,
+    residual = a c - a B gives c = sum a (r + a B) / sum a^2. Returns (numerator (3,),
+    denominator ()).
+
+    Rain adds light: a residual darker in some channel (detail the field has not fitted, a
+    field brighter than its input) is not rain, and counted it pulls c off the rain's colour
+    towards its own. Each counted pixel's estimate B + r / a is then at least its background,
+    so c cannot sink under the backgrounds it is fitted on; counted, such pixels took the
+    fit from white to black within a run, after which no rain had the rain's colour
+    (docs/rain.md, "The rain's colour fitted on the pixels rain brightens")."""
+    where = where & (residual >= 0).all(1)
     a = _amounts(residual, _towards(background, colour))[:, 0][where]
     r = residual.permute(0, 2, 3, 1)[where]
     b = background.permute(0, 2, 3, 1)[where]
@@ -53,7 +62,9 @@ def fit_colour(residual: Tensor, background: Tensor, where: Tensor, steps: int =
     colour = torch.ones(3, device=residual.device)
     for _ in range(steps):
         num, den = colour_sums(residual, background, colour, where)
-        colour = (num / den.clamp_min(1e-6)).clamp(0, 1)
+        if float(den) <= 0:  # no pixel the colour explains: keep it
+            break
+        colour = (num / den).clamp(0, 1)
     return colour
 
 

@@ -230,7 +230,9 @@ class RainPredictor(RainHead):
             if bool(strong.any()):
                 num, den = colour_sums(residual, background, self.rain_colour, strong)
                 self.colour_sums.mul_(1 - COLOUR_FORGET).add_(torch.cat([num, den[None]]))
-                self.rain_colour.copy_((self.colour_sums[:3] / self.colour_sums[3].clamp_min(1e-6)).clamp(0, 1))
+                fitted = (self.colour_sums[:3] / self.colour_sums[3].clamp_min(1e-6)).clamp(0, 1)
+                # until a pixel the colour explains is counted, the colour stays (white at first)
+                self.rain_colour.copy_(torch.where(self.colour_sums[3] > 0, fitted, self.rain_colour))
         departed = departure(residual, background, self.rain_colour)
         return colour_weights(departed, self.config.field_colour)[:, None]
 
