@@ -3,7 +3,7 @@ detail the field missed leaves a residual in its own colour."""
 
 import torch
 
-from rainyscape.rain.colour import colour_weights, departure, fit_colour
+from rainyscape.rain.colour import colour_weights, departure, fit_colour, solved_colour
 from tests.test_rain_head import _head, _scene
 
 RAIN = torch.tensor([0.9, 0.95, 1.0])
@@ -84,3 +84,10 @@ def test_the_heads_colour_stays_white_until_a_pixel_is_rain():
     residual = torch.full((1, 3, 16, 16), -0.2)  # a field brighter than its input
     head.for_field(torch.full((1, 3, 16, 16), 0.3), residual, torch.tensor([0]), background)
     assert torch.equal(head.rain_colour, torch.ones(3))
+
+
+def test_the_solved_colour_is_the_sums_ratio_or_the_previous_one_when_nothing_counted():
+    previous = torch.tensor([0.9, 0.8, 0.7])
+    assert torch.allclose(solved_colour(torch.tensor([1.0, 2.0, 4.0]), torch.tensor(4.0), previous),
+                          torch.tensor([0.25, 0.5, 1.0]))
+    assert torch.equal(solved_colour(torch.zeros(3), torch.tensor(0.0), previous), previous)

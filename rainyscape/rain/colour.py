@@ -56,15 +56,18 @@ def colour_sums(residual: Tensor, background: Tensor, colour: Tensor, where: Ten
     return (a[:, None] * (r + a[:, None] * b)).sum(0), (a * a).sum()
 
 
+def solved_colour(num: Tensor, den: Tensor, previous: Tensor) -> Tensor:
+    """The colour (3,) from :func:`colour_sums`' sums; ``previous`` where no pixel was counted
+    (``den`` 0), so that an empty batch cannot set it to black. No host sync."""
+    return torch.where(den > 0, (num / torch.where(den > 0, den, torch.ones_like(den))).clamp(0, 1), previous)
+
+
 def fit_colour(residual: Tensor, background: Tensor, where: Tensor, steps: int = 100) -> Tensor:
     """The rain's colour (3,) fitted from white on the pixels ``where`` by ``steps`` of
     :func:`colour_sums` (alternating steps: slow along c itself, so many of them)."""
     colour = torch.ones(3, device=residual.device)
     for _ in range(steps):
-        num, den = colour_sums(residual, background, colour, where)
-        if float(den) <= 0:  # no pixel the colour explains: keep it
-            break
-        colour = (num / den).clamp(0, 1)
+        colour = solved_colour(*colour_sums(residual, background, colour, where), colour)
     return colour
 
 

@@ -37,7 +37,7 @@ from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.angles import residual_streak_angle
 from rainyscape.imaging.streaks import across_opening, across_ridge, line_opening
-from rainyscape.rain.colour import colour_sums, colour_weights, departure
+from rainyscape.rain.colour import colour_sums, colour_weights, departure, solved_colour
 from rainyscape.rain.langevin import langevin_update
 from rainyscape.scene import SceneData
 
@@ -230,9 +230,8 @@ class RainPredictor(RainHead):
             if bool(strong.any()):
                 num, den = colour_sums(residual, background, self.rain_colour, strong)
                 self.colour_sums.mul_(1 - COLOUR_FORGET).add_(torch.cat([num, den[None]]))
-                fitted = (self.colour_sums[:3] / self.colour_sums[3].clamp_min(1e-6)).clamp(0, 1)
                 # until a pixel the colour explains is counted, the colour stays (white at first)
-                self.rain_colour.copy_(torch.where(self.colour_sums[3] > 0, fitted, self.rain_colour))
+                self.rain_colour.copy_(solved_colour(self.colour_sums[:3], self.colour_sums[3], self.rain_colour))
         departed = departure(residual, background, self.rain_colour)
         return colour_weights(departed, self.config.field_colour)[:, None]
 
