@@ -158,5 +158,31 @@ def test_a_capture_cache_follows_the_photos_content_not_their_times(tmp_path):
     shutil.copytree(tmp_path / "a", copy)  # a fresh copy: new times, same photos
     os.utime(copy / "images" / "0.jpg", (1e9, 1e9))
     assert _source_stamp(copy) == _source_stamp(tmp_path / "a")
+    # rs-process-data's report (its timings) and its COLMAP work folder do not count
+    (copy / "process_report.json").write_text('{"timings_s": {"matching": 35.2}}')
+    (copy / "colmap").mkdir()
+    (copy / "colmap" / "database.db").write_bytes(b"pages")
+    assert _source_stamp(copy) == _source_stamp(tmp_path / "a")
     (copy / "images" / "1.jpg").write_bytes(bytes([9]) * 100)  # same size, other content
     assert _source_stamp(copy) != _source_stamp(tmp_path / "a")
+
+
+def test_photos_are_posed_into_the_same_benchmark_scenes_every_time(tmp_path):
+    # A capture of photos without poses, posed in two separate scene caches: the same posed
+    # folder and the same rainy scene, to the bit (rs-bench poses with --deterministic).
+    import imageio.v3 as iio
+
+    from rainyscape.synth import generate
+
+    sim = generate(tmp_path / "sim", "demo", rows=1, cols=12, width=192, height=192, seed=0)
+    photos = tmp_path / "captures" / "orbit" / "images"
+    photos.mkdir(parents=True)
+    for path in sorted((sim / "images_wo_rain").glob("*.png")):
+        iio.imwrite(photos / f"{path.stem}.jpg", iio.imread(path), quality=95)
+    capture = Capture("orbit", photos.parent, posed=False)
+    made = [rainy_scene(capture, "light", "static", tmp_path / f"cache{k}") for k in (1, 2)]
+    assert made[0][1].name == made[1][1].name
+    posed = [next((tmp_path / f"cache{k}").glob("capture-orbit-posed-*")) for k in (1, 2)]
+    assert posed[0].name == posed[1].name
+    assert (posed[0] / "transforms.json").read_bytes() == (posed[1] / "transforms.json").read_bytes()
+    assert len(json.loads((posed[0] / "transforms.json").read_text())["frames"]) >= 10

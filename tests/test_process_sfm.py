@@ -64,3 +64,10 @@ def test_report_lists_each_mapping_tried():
                                                "kept": True}
     assert "default mapping: 8, relaxed mapping: 9 (kept)" in second.summary()
     assert "mapping:" not in report(10).summary()  # one attempt: nothing to say
+
+
+def test_deterministic_means_one_thread_in_every_pose_step():
+    from rainyscape.process.sfm import SfmOptions
+
+    assert SfmOptions(num_threads=8).threads == 8
+    assert SfmOptions(num_threads=8, deterministic=True).threads == 1

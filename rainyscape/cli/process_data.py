@@ -54,6 +54,8 @@ class ProcessArgs:
                                     above=0.0, hi=90.0)
     num_threads: int = opt(-1, "CPU threads (-1: all)", lo=-1, hi=1024)
     seed: int = opt(0, "random seed", lo=0, hi=SEED_MAX)
+    deterministic: bool = opt(False, "one thread in every SfM step: the same input gives the same poses "
+                                     "to the bit (slower)")
     overwrite: bool = opt(False, "replace the scene rs-process-data wrote in the output folder; other files are kept")
     quiet: bool = opt(False, "no progress output")
     verbose: bool = opt(False, "show COLMAP's own log")
@@ -96,7 +98,8 @@ def main(argv: list[str]) -> int:
                      domain_size_pooling=opts.domain_size_pooling, exif_focal=opts.exif_focal,
                      retry=opts.retry, min_registered=opts.min_registered,
                      init_min_tri_angle=opts.init_min_tri_angle,
-                     num_threads=opts.num_threads, seed=opts.seed, verbose=opts.verbose)
+                     num_threads=opts.num_threads, seed=opts.seed,
+                     deterministic=opts.deterministic, verbose=opts.verbose)
     options = ProcessOptions(frames=frames, sfm=sfm, overwrite=opts.overwrite, progress=not opts.quiet)
     run = process_video if kind == "video" else process_images
     result = run(Path(opts.data), Path(opts.output_dir), options)

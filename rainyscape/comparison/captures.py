@@ -89,9 +89,18 @@ def _digest(*parts) -> str:
 def _source_stamp(folder: Path) -> tuple:
     """What a capture's cache depends on: its files' names and contents. Not their times: a
     copy of the same photos (a fresh checkout, a re-synced data folder) must find the cache,
-    since posing again is slow and SfM need not register the same views twice."""
+    since posing again is slow. Nor what rs-process-data leaves beside the scene: its report
+    (how long each step took) and its COLMAP work folder (SQLite pages and a vocabulary tree
+    that differ in bytes from run to run when the poses do not), so that a deterministic
+    posing of the same photos gives the same rainy scenes."""
+    from rainyscape.process.output import REPORT, WORK_DIR
+
+    def counts(path: Path) -> bool:
+        relative = path.relative_to(folder)
+        return path.is_file() and relative != Path(REPORT) and relative.parts[0] != WORK_DIR
+
     return tuple(sorted((str(p.relative_to(folder)), _file_digest(p))
-                        for p in folder.rglob("*") if p.is_file()))
+                        for p in folder.rglob("*") if counts(p)))
 
 
 def _file_digest(path: Path) -> str:
@@ -120,12 +129,18 @@ def posed_folder(capture: Capture, cache: Path) -> Path:
     if capture.posed:
         return capture.folder
     from rainyscape.process.pipeline import ProcessOptions, process_images
+    from rainyscape.process.sfm import SfmOptions
 
-    final = cache / f"capture-{capture.name}-posed-{_digest(_source_stamp(capture.folder))}"
+    # deterministic: a benchmark's scenes must be the same folders in every run
+    # (no progress output: it would name the temporary folder the scene is built in)
+    options = ProcessOptions(sfm=SfmOptions(deterministic=True), progress=False)
+    key = _digest(_source_stamp(capture.folder), options.frames, options.sfm)
+    final = cache / f"capture-{capture.name}-posed-{key}"
 
     def build(tmp: Path) -> None:
         print(f"posing capture '{capture.name}' with rs-process-data into {final} ...", flush=True)
-        process_images(_photos(capture.folder), tmp, ProcessOptions())
+        result = process_images(_photos(capture.folder), tmp, options)
+        print(f"  {result.registration.summary()}", flush=True)
 
     return _build_once(final, build)
 

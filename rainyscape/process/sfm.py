@@ -55,7 +55,19 @@ class SfmOptions:
     focal_prior: float = 0.0  # focal length in pixels the frames were taken with, 0: unknown
     num_threads: int = -1  # -1: all cores
     seed: int = 0
+    # One thread in every step that decides the poses: the same photos then give the same poses
+    # to the bit from run to run (another CPU may still round differently). With several, the
+    # database numbers the images in the order their features finish, and the matcher's and
+    # bundle adjustment's results depend on how their threads interleave: the clock orbit's
+    # camera matrices moved by up to 0.06 from run to run (docs/process.md, "Same photos, same
+    # poses").
+    deterministic: bool = False
     verbose: bool = False  # show COLMAP's own log
+
+    @property
+    def threads(self) -> int:
+        """The threads each COLMAP step that decides the poses gets."""
+        return 1 if self.deterministic else self.num_threads
 
     def validate(self) -> None:
         if self.camera_model not in CAMERA_MODELS:
@@ -144,7 +156,7 @@ def extract_features(database: Path, image_dir: Path, names: list[str], opts: Sf
     extraction.sift.max_num_features = opts.max_features
     extraction.sift.estimate_affine_shape = opts.affine_shape
     extraction.sift.domain_size_pooling = opts.domain_size_pooling
-    extraction.num_threads = opts.num_threads
+    extraction.num_threads = opts.threads
     mode = pycolmap.CameraMode.SINGLE if opts.single_camera else pycolmap.CameraMode.PER_IMAGE
     pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=mode,
                               reader_options=reader, extraction_options=extraction)
@@ -199,7 +211,7 @@ def match_features(database: Path, work_dir: Path, opts: SfmOptions) -> None:
     import pycolmap
 
     matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = opts.num_threads
+    matching.num_threads = opts.threads
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = opts.seed
     if opts.matcher == "exhaustive":
@@ -208,11 +220,11 @@ def match_features(database: Path, work_dir: Path, opts: SfmOptions) -> None:
         return
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = opts.overlap
-    pairing.num_threads = opts.num_threads
+    pairing.num_threads = opts.threads
     tree = None
     if opts.loop_detection:
         tree = Path(opts.vocab_tree) if opts.vocab_tree else build_vocab_tree(
-            database, work_dir / "vocab_tree.bin", opts.seed, opts.num_threads)
+            database, work_dir / "vocab_tree.bin", opts.seed, opts.threads)
     if tree is not None:
         pairing.loop_detection = True
         pairing.vocab_tree_path = tree
@@ -230,7 +242,7 @@ def incremental_mapping(database: Path, image_dir: Path, out_dir: Path, opts: Sf
     from tqdm import tqdm
 
     pipeline = pycolmap.IncrementalPipelineOptions()
-    pipeline.num_threads = opts.num_threads
+    pipeline.num_threads = opts.threads
     pipeline.random_seed = opts.seed
     pipeline.min_model_size = min(pipeline.min_model_size, max(2, total // 2))
     pipeline.extract_colors = True
