@@ -184,3 +184,13 @@ def test_overwrite_replaces_only_the_entries_the_tool_writes(tmp_path):
     assert "images/0.png" not in after  # the earlier run's own file, replaced
     assert "sparse" not in after and "transforms.json" not in after  # one scene, not two mixed
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".P.partial-")]
+
+
+def test_records_are_the_report_and_the_colmap_work_folder():
+    from pathlib import Path
+
+    from rainyscape.process.output import is_record
+
+    assert is_record(Path("process_report.json")) and is_record(Path("colmap/database.db"))
+    assert not is_record(Path("images/001.png")) and not is_record(Path("transforms.json"))
+    assert not is_record(Path("sparse/0/images.bin"))

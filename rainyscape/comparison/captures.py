@@ -93,14 +93,10 @@ def _source_stamp(folder: Path) -> tuple:
     (how long each step took) and its COLMAP work folder (SQLite pages and a vocabulary tree
     that differ in bytes from run to run when the poses do not), so that a deterministic
     posing of the same photos gives the same rainy scenes."""
-    from rainyscape.process.output import REPORT, WORK_DIR
+    from rainyscape.process.output import is_record
 
-    def counts(path: Path) -> bool:
-        relative = path.relative_to(folder)
-        return path.is_file() and relative != Path(REPORT) and relative.parts[0] != WORK_DIR
-
-    return tuple(sorted((str(p.relative_to(folder)), _file_digest(p))
-                        for p in folder.rglob("*") if counts(p)))
+    files = ((p.relative_to(folder), p) for p in folder.rglob("*") if p.is_file())
+    return tuple(sorted((str(rel), _file_digest(p)) for rel, p in files if not is_record(rel)))
 
 
 def _file_digest(path: Path) -> str:

@@ -32,6 +32,14 @@ WORK_DIR = "colmap"
 # Every entry the tool writes in a scene folder; the report goes last: it marks a whole scene.
 OUTPUTS = ("images", "sparse", "transforms.json", "sparse_pc.ply", WORK_DIR, REPORT)
 WRITTEN_KEY = "written"  # the report's list of every file of the scene, relative paths
+# The entries that record how a scene was made (COLMAP's work files, the report's timings), not
+# what it is: they differ in bytes between runs that give the same scene.
+RECORDS = (WORK_DIR, REPORT)
+
+
+def is_record(relative: Path) -> bool:
+    """Whether ``relative`` (a path inside a scene folder) lies in one of :data:`RECORDS`."""
+    return bool(relative.parts) and relative.parts[0] in RECORDS
 
 
 def check_output(source: Path, scene_dir: Path, overwrite: bool) -> None:
