@@ -17,7 +17,7 @@ from rainyscape.cli import run_cli
 from rainyscape.cli.process_data import main as process_main
 from rainyscape.errors import DataError
 from rainyscape.process import output
-from rainyscape.process.output import REPORT, WRITTEN_KEY, scene_files, staged_scene
+from rainyscape.process.output import REPORT, WRITTEN_KEY, is_record, scene_files, staged_scene
 
 FAST = ["--max-features", "1024", "--num-threads", "2", "--quiet"]
 
@@ -187,10 +187,6 @@ def test_overwrite_replaces_only_the_entries_the_tool_writes(tmp_path):
 
 
 def test_records_are_the_report_and_the_colmap_work_folder():
-    from pathlib import Path
-
-    from rainyscape.process.output import is_record
-
     assert is_record(Path("process_report.json")) and is_record(Path("colmap/database.db"))
     assert not is_record(Path("images/001.png")) and not is_record(Path("transforms.json"))
     assert not is_record(Path("sparse/0/images.bin"))
