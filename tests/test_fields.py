@@ -11,7 +11,7 @@ from rainyscape import config
 from rainyscape.cameras import Window, pixel_rays
 from rainyscape.components import TrainState
 from rainyscape.errors import ConfigError
-from rainyscape.fields.grid import GridField, growth_resolution
+from rainyscape.fields.grid import GridField, check_growth, growth_resolution
 from rainyscape.fields.ndc import ndc_near
 from rainyscape.fields.nerf_mlp import NerfMLP, NerfMLPField
 from rainyscape.fields.packed import distortion, packed_weights
@@ -115,6 +115,15 @@ def test_growth_schedule_is_log_spaced_and_monotone():
     assert res[0] == 16 and res[9] == 16 and res[10] == 32 and res[20] == 64 and res[40] == 128
     assert res == sorted(res) and res[-1] == 128
     assert growth_resolution(0, 100, 16, 128, ()) == 128
+
+
+def test_a_schedule_the_lattice_cannot_follow_is_refused():
+    plan = dataclasses.make_dataclass("Plan", ["resolution_init", "resolution_final", "growth_at"])
+    check_growth(plan(16, 128, (0.1, 0.8)))
+    with pytest.raises(ConfigError, match="resolution_init <= resolution_final"):
+        check_growth(plan(256, 128, (0.1,)))  # a lattice that would shrink
+    with pytest.raises(ConfigError, match="growth_at"):
+        check_growth(plan(16, 128, (0.1, 1.5)))  # past the run's end
 
 
 def _state(field, step, max_iters, optimizers):

@@ -16,7 +16,7 @@ import pytest
 from rainyscape.cli import run_cli
 from rainyscape.cli.process_data import main as process_main
 from rainyscape.errors import DataError
-from rainyscape.process import output
+from rainyscape.formats import output as moves_module
 from rainyscape.process.output import REPORT, WRITTEN_KEY, is_record, scene_files, staged_scene
 
 FAST = ["--max-features", "1024", "--num-threads", "2", "--quiet"]
@@ -153,7 +153,7 @@ def test_a_failure_while_moving_into_place_puts_everything_back(tmp_path, monkey
     earlier_scene(out)
     (out / "notes.txt").write_text("my notes\n")
     before = snapshot(tmp_path)
-    real_move, moves = output.move_entry, []
+    real_move, moves = moves_module.move_entry, []
 
     def failing_move(src: Path, dst: Path) -> None:
         moves.append(src)
@@ -161,7 +161,7 @@ def test_a_failure_while_moving_into_place_puts_everything_back(tmp_path, monkey
             raise OSError(28, "No space left on device")
         real_move(src, dst)
 
-    monkeypatch.setattr(output, "move_entry", failing_move)
+    monkeypatch.setattr(moves_module, "move_entry", failing_move)  # what move_all calls
     with pytest.raises(DataError, match="cannot move the new scene into place .*as it was"):
         with staged_scene(tmp_path / "photos", out, overwrite=True) as staging:
             for name in ("images", "sparse"):

@@ -160,11 +160,7 @@ class GridField(RayField):
     def __init__(self, config: Config, scene: SceneData):
         super().__init__()
         c = self.config = config
-        if not 2 <= c.resolution_init <= c.resolution_final:
-            raise ConfigError(f"field: need 2 <= resolution_init <= resolution_final, got "
-                              f"{c.resolution_init}, {c.resolution_final}")
-        if any(not 0 <= f <= 1 for f in c.growth_at):
-            raise ConfigError(f"field.growth_at: fractions of the run in [0, 1], got {c.growth_at}")
+        check_growth(c)
         if c.step_ratio <= 0 or c.box_scale <= 0:
             raise ConfigError("field.step_ratio and field.box_scale must be > 0")
         if c.shell_reach and not CONTRACT_INNER < c.shell_reach < 1.0:
@@ -405,6 +401,15 @@ class GridField(RayField):
         if saved is not None and int(saved) != self.resolution:
             self.grow(int(saved))
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+
+def check_growth(config) -> None:
+    """A grid field's lattice schedule is one it can follow (``grid`` and ``packed-grid``)."""
+    if not 2 <= config.resolution_init <= config.resolution_final:
+        raise ConfigError(f"field: need 2 <= resolution_init <= resolution_final, got "
+                          f"{config.resolution_init}, {config.resolution_final}")
+    if any(not 0 <= f <= 1 for f in config.growth_at):
+        raise ConfigError(f"field.growth_at: fractions of the run in [0, 1], got {config.growth_at}")
 
 
 class GridGrowth(Callback):

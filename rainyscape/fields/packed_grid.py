@@ -40,7 +40,8 @@ from torch import Tensor, nn
 from rainyscape.components import Callback, ParamGroup, TrainState
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
-from rainyscape.fields.grid import COLOR_GROUP, DENSITY_GROUP, NETWORK_GROUP, ColorNet, GridGrowth
+from rainyscape.fields.grid import (COLOR_GROUP, DENSITY_GROUP, NETWORK_GROUP, ColorNet, GridGrowth,
+                                    check_growth)
 from rainyscape.fields.feature_grids import axis_sizes
 from rainyscape.fields.grid_encodings import Encoding, HashEncoding, PlanesEncoding, VMEncoding
 from rainyscape.fields.marching import PackedSamples, march
@@ -105,11 +106,7 @@ class PackedGridField(RayField):
     def __init__(self, config: Config, scene: SceneData):
         super().__init__()
         c = self.config = config
-        if not 2 <= c.resolution_init <= c.resolution_final:
-            raise ConfigError(f"field: need 2 <= resolution_init <= resolution_final, got "
-                              f"{c.resolution_init}, {c.resolution_final}")
-        if any(not 0 <= f <= 1 for f in c.growth_at):
-            raise ConfigError(f"field.growth_at: fractions of the run in [0, 1], got {c.growth_at}")
+        check_growth(c)
         if not 0 < c.inner < 1:
             raise ConfigError(f"field.inner must be in (0, 1), got {c.inner}")
         if not 0 < scene.near < scene.far:

@@ -175,6 +175,21 @@ def move_entry(src: Path, dst: Path) -> None:
         shutil.move(str(src), str(dst))  # another file system
 
 
+def move_all(moves: Iterable[tuple[Path, Path]], failure: str) -> None:
+    """Make each ``(src, dst)`` move in order, or none: on a failure the moves made are undone
+    and a ``DataError`` starting with ``failure`` is raised."""
+    done: list[tuple[Path, Path]] = []
+    try:
+        for src, dst in moves:
+            move_entry(src, dst)
+            done.append((src, dst))
+    except OSError as exc:
+        for src, dst in reversed(done):  # put everything back
+            with contextlib.suppress(OSError):
+                move_entry(dst, src)
+        raise DataError(f"{failure} ({exc.strerror or exc}); the folder is as it was") from None
+
+
 def _publish(staging: Path, out: Path, replaces: set[str], force: bool, writes: str, option: str,
              last: str) -> None:
     if not os.path.lexists(out):
@@ -187,19 +202,8 @@ def _publish(staging: Path, out: Path, replaces: set[str], force: bool, writes: 
     names = entries_of(staging)
     old = staging / ".replaced"
     old.mkdir()
-    done: list[tuple[Path, Path]] = []
-    try:
-        # the old output goes first, its marker first; the new one comes in, its marker last
-        for name in sorted(replaces | set(names), key=lambda n: (n != last, n)):
-            if os.path.lexists(out / name):
-                move_entry(out / name, old / name)
-                done.append((out / name, old / name))
-        for name in sorted(names, key=lambda n: (n == last, n)):
-            move_entry(staging / name, out / name)
-            done.append((staging / name, out / name))
-    except OSError as exc:
-        for src, dst in reversed(done):  # put everything back
-            with contextlib.suppress(OSError):
-                move_entry(dst, src)
-        raise DataError(f"{out}: cannot move the new output into place ({exc.strerror or exc}); "
-                        "the folder is as it was") from None
+    # the old output goes first, its marker first; the new one comes in, its marker last
+    moves = [(out / name, old / name) for name in sorted(replaces | set(names), key=lambda n: (n != last, n))
+             if os.path.lexists(out / name)]
+    moves += [(staging / name, out / name) for name in sorted(names, key=lambda n: (n == last, n))]
+    move_all(moves, f"{out}: cannot move the new output into place")

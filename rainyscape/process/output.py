@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Iterator
 
 from rainyscape.errors import DataError
-from rainyscape.formats.output import make_folders, move_entry, new_staging, remove_made
+from rainyscape.formats.output import make_folders, move_all, new_staging, remove_made
 
 REPORT = "process_report.json"
 WORK_DIR = "colmap"
@@ -141,18 +141,8 @@ def _publish(staging: Path, out: Path, scene_dir: Path, overwrite: bool) -> None
     replaceable(out, overwrite)  # again: the folder may have changed while SfM ran
     old = staging / ".replaced"
     old.mkdir()
-    done: list[tuple[Path, Path]] = []
-    try:
-        for name in OUTPUTS:  # an earlier run's entry goes even where this run wrote none
-            if os.path.lexists(out / name):
-                move_entry(out / name, old / name)
-                done.append((out / name, old / name))
-            if os.path.lexists(staging / name):
-                move_entry(staging / name, out / name)
-                done.append((staging / name, out / name))
-    except OSError as exc:
-        for src, dst in reversed(done):  # put everything back
-            with contextlib.suppress(OSError):
-                move_entry(dst, src)
-        raise DataError(f"{scene_dir}: cannot move the new scene into place "
-                        f"({exc.strerror or exc}); the folder is as it was") from None
+    moves: list[tuple[Path, Path]] = []
+    for name in OUTPUTS:  # an earlier run's entry goes even where this run wrote none
+        moves += [(src, dst) for src, dst in ((out / name, old / name), (staging / name, out / name))
+                  if os.path.lexists(src)]
+    move_all(moves, f"{scene_dir}: cannot move the new scene into place")
