@@ -42,7 +42,8 @@ def main(argv: list[str]) -> int:
     if not args.positional:
         raise ConfigError("rs-bench-merge: name at least one results file (OUT/NAME.json of an rs-bench); "
                           "see rs-bench-merge --help")
-    from rainyscape.comparison.merge import merge_results, read_results
+    from rainyscape.comparison.merge import merge_results
+    from rainyscape.comparison.results import read_results
     from rainyscape.comparison.tables import markdown_report
     from rainyscape.formats.atomic import write_text_atomic
     from rainyscape.formats.output import check_can_create

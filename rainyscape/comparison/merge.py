@@ -17,19 +17,6 @@ from rainyscape.comparison.matrix import CEILING, Cell
 from rainyscape.errors import DataError
 
 
-def read_results(path: Path) -> dict:
-    """An rs-bench results file, or a DataError naming it and what is wrong."""
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DataError(f"{path}: no such results file") from None
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise DataError(f"{path}: cannot read it as an rs-bench results file ({exc})") from None
-    if not isinstance(data, dict) or not isinstance(data.get("cells"), dict):
-        raise DataError(f"{path}: not an rs-bench results file (no 'cells')")
-    return data
-
-
 def recorded_cell(key: str, record: dict) -> Cell:
     """The cell a results file's record describes (its scene folder is not recorded: "")."""
     label = record.get("label") or record["method"]

@@ -20,12 +20,12 @@ touched. The checks run before anything is simulated, trained or written.
 
 from __future__ import annotations
 
-import json
 import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+from rainyscape.comparison.results import read_results
 from rainyscape.errors import ConfigError, DataError
 from rainyscape.formats.output import check_can_create
 
@@ -69,10 +69,10 @@ def check_name(name: str) -> str:
 
 def is_results_file(path: Path) -> bool:
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError):
+        read_results(path)
+    except DataError:
         return False
-    return isinstance(data, dict) and isinstance(data.get("cells"), dict)
+    return True
 
 
 def is_tables_file(path: Path, name: str) -> bool:

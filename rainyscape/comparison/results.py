@@ -8,7 +8,7 @@ import os
 import platform
 from pathlib import Path
 
-from rainyscape.errors import ConfigError
+from rainyscape.errors import ConfigError, DataError
 from rainyscape.formats.atomic import write_text_atomic
 
 
@@ -28,16 +28,27 @@ def machine_description() -> dict:
             "python": platform.python_version(), "platform": platform.platform()}
 
 
+def read_results(path: Path) -> dict:
+    """A results file, or a DataError naming it and what is wrong."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such results file") from None
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise DataError(f"{path}: cannot read it as an rs-bench results file ({exc})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("cells"), dict):
+        raise DataError(f"{path}: not an rs-bench results file (no 'cells')")
+    return data
+
+
 def load_results(path: Path) -> dict:
+    """The benchmark's own results so far (none yet: no cells)."""
     if not path.is_file():
         return {"cells": {}}
     try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise ConfigError(f"{path}: results file is not valid JSON; move it away to start afresh") from None
-    if not isinstance(data, dict) or not isinstance(data.get("cells"), dict):
-        raise ConfigError(f"{path}: not an rs-bench results file (no 'cells'); move it away to start afresh")
-    return data
+        return read_results(path)
+    except DataError as exc:
+        raise ConfigError(f"{exc}; move it away to start afresh") from None
 
 
 def save_results(path: Path, results: dict) -> None:
