@@ -10,7 +10,6 @@ same fingerprint: runs are deterministic) and refused otherwise, naming both fil
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from rainyscape.comparison.matrix import CEILING, Cell
@@ -47,9 +46,9 @@ def merge_results(files: list[tuple[Path, dict]]) -> tuple[list[Cell], dict]:
             merged["oracle"].setdefault(scene, rows)
         merged["budget_mismatches"] += [m for m in results.get("budget_mismatches", [])
                                         if m not in merged["budget_mismatches"]]
-    machines = list(dict.fromkeys(json.dumps(r.get("machine", {}), sort_keys=True) for _, r in files))
-    merged["machine"] = json.loads(machines[0]) if len(machines) == 1 else {
-        "cpu": " / ".join(sorted({json.loads(m).get("cpu", "?") for m in machines})), "cores": "?"}
+    machines = [r.get("machine", {}) for _, r in files]
+    merged["machine"] = machines[0] if all(m == machines[0] for m in machines) else {
+        "cpu": " / ".join(sorted({m.get("cpu", "?") for m in machines})), "cores": "?"}
     merged["command"] = "; ".join(f"{r.get('command', '?')} ({p.name})" for p, r in files)
     merged["updated"] = max((str(r.get("updated", "")) for _, r in files), default="")
     return cells, merged
