@@ -48,6 +48,33 @@ def test_brighter_pixels_weigh_less_only_where_rain_is_a_constant():
     assert float(plain(_ctx(rendered, target, None))) == pytest.approx(0.25 * (4 + 0 + 9 + 1) / 4)
 
 
+def test_streak_scale_keeps_the_brighter_weight_for_streaks_and_not_for_detail():
+    """``streak_scale``: of two pixels equally brighter than the render, the one on a streak
+    falling along the view's down weighs ``brighter``, the one on a blob (detail) weighs 1."""
+    from rainyscape.cameras import Cameras, Window
+    from rainyscape.scene import SceneData
+
+    images = torch.full((1, 24, 32, 3), 50, dtype=torch.uint8)
+    images[0, 4:19, 10] = 250  # a streak down the upright view
+    images[0, 6:12, 18:24] = 250  # a blob wider than a streak
+    f = torch.full((1,), 30.0)
+    cams = Cameras(torch.eye(4)[None], f, f, torch.full((1,), 16.0), torch.full((1,), 12.0), 32, 24)
+    scene = SceneData(name="toy", images=images, cameras=cams, image_names=["0.png"], train_indices=[0],
+                      eval_indices=[], near=0.1, far=10.0, scene_box=torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    term = Photometric(Photometric.Config(brighter=0.5, streak_scale=0.02))
+    term.setup(scene, torch.device("cpu"))
+    rendered = torch.full((2, 3, 1, 1), 50 / 255)
+    target = torch.full((2, 3, 1, 1), 250 / 255)
+    rays = Window(torch.tensor([10, 21]), torch.tensor([12, 9]), 1, 1)  # (x, y): the streak, the blob
+    ctx = LossContext(rendered, target, {}, RenderOutput(rgb=rendered), torch.tensor([0, 0]), 0, "warmup", rays)
+    r2 = (200 / 255) ** 2
+    assert float(term(ctx)) == pytest.approx((0.5 * r2 + 1.0 * r2) / 2, rel=1e-5)
+    # without the option both weigh ``brighter``
+    plain = Photometric(Photometric.Config(brighter=0.5))
+    plain.setup(scene, torch.device("cpu"))
+    assert float(plain(ctx)) == pytest.approx(0.5 * r2, rel=1e-5)
+
+
 def test_brighter_weight_fits_a_point_nearer_its_dry_views():
     # one 3D point seen dry in three views and brightened by rain in the fourth: the least-squares
     # fit is their mean, with the brighter views weighted less it stays nearer the dry value

@@ -14,7 +14,7 @@ from rainyscape.engine.pipeline import Pipeline, build_pipeline
 from rainyscape.errors import ConfigError
 from rainyscape.eval.protocol import evaluate_pipeline
 from rainyscape.imaging.metrics import psnr
-from rainyscape.imaging.streaks import across_opening, across_ridge, line_mean, line_opening
+from rainyscape.imaging.streaks import across_opening, across_ridge, line_mean, line_opening, streak_strength
 from rainyscape.postprocess.fusion import THRESHOLD_RULES, rain_mask, view_threshold
 from rainyscape.postprocess.streak_fusion import StreakFusion, streak_mask
 from _eval_fixtures import OracleField, make_scene
@@ -49,6 +49,27 @@ def test_line_opening_keeps_what_runs_along_the_line_and_removes_the_rest():
     opened = line_opening(tilted, torch.tensor([math.pi / 2]), 2)
     assert bool((opened <= tilted + 1e-6).all())
     assert float(opened.sum() / tilted.sum()) > 0.5
+
+
+def test_streak_strength_scores_streaks_near_the_fall_and_not_detail():
+    image = torch.full((1, 3, 40, 40), 0.2)
+    image[0, :, 4:16, 6] += 0.5  # a vertical streak
+    image[0, :, 30, 4:20] += 0.5  # a horizontal line
+    image[0, :, 8:11, 24:27] += 0.5  # a blob shorter than the line
+    image[0, :, 20, 30] += 0.5  # a dot
+    down = torch.tensor([math.pi / 2])
+    tilts = torch.tensor([math.radians(t) for t in (-30.0, 0.0, 30.0)])
+    strength = streak_strength(image, down, tilts, 2, 2)
+    assert strength.shape == (1, 1, 40, 40)
+    assert torch.allclose(strength[0, 0, 4:16, 6], torch.full((12,), 0.5), atol=1e-5)
+    assert float(strength[0, 0, 28:33].max()) < 1e-6  # the line across the fall
+    assert float(strength[0, 0, 20, 30]) < 1e-6
+    # the blob: nothing along the fall; a tilted line's bilinear samples keep a little of it
+    assert float(strength[0, 0, 6:14, 22:30].max()) < 0.3 * 0.5
+    # a streak 30 degrees off the down is found with the tilts, not without them
+    slanted = _streaks(40, 40, 120.0, 13.0, 0)[None, None].expand(1, 3, 40, 40)
+    assert float(streak_strength(slanted, down, tilts, 2, 2).sum() / slanted[:, :1].sum()) > 0.5
+    assert float(streak_strength(slanted, down, torch.zeros(1), 2, 2).sum() / slanted[:, :1].sum()) < 0.2
 
 
 def test_across_opening_keeps_edges_across_the_direction_and_removes_streaks_and_dots():

@@ -15,6 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from rainyscape.imaging.gradients import grayscale
+
 
 def line_samples(images: Tensor, angle: Tensor, half_length: int) -> Iterator[Tensor]:
     """The (B, C, h, w) ``images`` shifted by t = -``half_length`` .. ``half_length`` pixels
@@ -73,3 +75,15 @@ def across_ridge(images: Tensor, angle: Tensor, half_width: int) -> Tensor:
     best = reduce(torch.maximum, (images - torch.maximum(samples[n - k], samples[n + k])
                                   for k in range(1, n + 1)))
     return best.clamp_min(0)
+
+
+def streak_strength(images: Tensor, angle: Tensor, tilts: Tensor, half_length: int, half_width: int) -> Tensor:
+    """How far each pixel of (B, C, h, w) ``images`` (their luma) stands out as part of a bright
+    streak that runs within ``tilts`` (radians, offsets tried) of ``angle`` (B,): the largest over
+    the tilts of the :func:`line_opening` along it of the :func:`across_ridge` across it,
+    (B, 1, h, w). A streak at least 2 ``half_length`` + 1 pixels long and up to ``half_width``
+    wide scores its level over its background; a blob wider than that, an edge, a dot and a
+    line that runs across score 0."""
+    luma = images if images.shape[1] == 1 else grayscale(images)
+    return reduce(torch.maximum, (line_opening(across_ridge(luma, angle + t, half_width), angle + t, half_length)
+                                  for t in tilts.tolist()))

@@ -2,14 +2,39 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from rainyscape.cameras import down_directions
 from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded
+from rainyscape.engine.sampling import window_values
+from rainyscape.imaging.streaks import streak_strength
 from rainyscape.losses.rain_losses import reconstruction_loss
+
+# A streak in the input for ``streak_scale``: at least 5 px long along a direction within 30
+# degrees of the view's down (the wind's slant; perspective leans it more at the image's
+# sides) and up to 2 px wide, as rain is at 128 to 240 px.
+STREAK_TILTS_DEG = (-30.0, -15.0, 0.0, 15.0, 30.0)
+STREAK_HALF_LENGTH = 2
+STREAK_HALF_WIDTH = 2
+STREAK_VIEWS_AT_ONCE = 8  # views whose streak maps are computed together (memory)
+
+
+def streak_maps(images: Tensor, down: Tensor) -> Tensor:
+    """Per view, how far each pixel of the uint8 ``images`` (N, H, W, 3) stands out as a
+    streak falling near the view's ``down`` (N,) radians: (N, H, W, 1) float."""
+    tilts = torch.tensor([math.radians(t) for t in STREAK_TILTS_DEG])
+    maps = []
+    for start in range(0, images.shape[0], STREAK_VIEWS_AT_ONCE):
+        chunk = images[start:start + STREAK_VIEWS_AT_ONCE].permute(0, 3, 1, 2).float() / 255.0
+        angle = down[start:start + STREAK_VIEWS_AT_ONCE].to(chunk)
+        maps.append(streak_strength(chunk, angle, tilts.to(chunk), STREAK_HALF_LENGTH, STREAK_HALF_WIDTH))
+    return torch.cat(maps).permute(0, 2, 3, 1)
 
 
 class Photometric(Loss):
@@ -21,11 +46,26 @@ class Photometric(Loss):
     @dataclass
     class Config:
         brighter: float = bounded(1.0, 0.0, 1.0)  # the weight of pixels brighter than the render
+        # > 0: ``brighter`` in full only where the input shows a streak standing out by this
+        # much (linearly less below it), weight 1 elsewhere: rain falls in streaks, the
+        # detail a field has not resolved yet does not
+        streak_scale: float = bounded(0.0, 0.0)
 
     def __init__(self, config: "Photometric.Config | None" = None):
         super().__init__(config or self.Config())
+        self.streaks: Tensor | None = None  # (N, H, W, 1), with streak_scale
+
+    def setup(self, scene, device: torch.device) -> None:
+        if self.config.brighter < 1.0 and self.config.streak_scale > 0:
+            self.streaks = streak_maps(scene.images, down_directions(scene.cameras)).to(device)
+
+    def _brighter(self, ctx: LossContext) -> float | Tensor:
+        if self.streaks is None or ctx.window is None:
+            return self.config.brighter
+        gate = (window_values(self.streaks, ctx.view_ids, ctx.window) / self.config.streak_scale).clamp(max=1.0)
+        return 1.0 - (1.0 - self.config.brighter) * gate
 
     def __call__(self, ctx: LossContext) -> Tensor:
         if self.config.brighter == 1.0:
             return F.mse_loss(ctx.rendered, ctx.target)  # nerf's loss, as it always was
-        return reconstruction_loss(ctx.target - ctx.rendered, self.config.brighter)
+        return reconstruction_loss(ctx.target - ctx.rendered, self._brighter(ctx))

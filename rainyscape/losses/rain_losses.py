@@ -29,11 +29,11 @@ def likelihood_loss(residual: Tensor, eps: float = 1e-6) -> Tensor:
     return residual.pow(2).mean() / (var + eps)
 
 
-def reconstruction_loss(residual: Tensor, brighter: float = 1.0) -> Tensor:
-    """mean(w r^2), w = ``brighter`` where the target is brighter than the fit (the pixel's
-    channel mean of r above 0), else 1."""
+def reconstruction_loss(residual: Tensor, brighter: float | Tensor = 1.0) -> Tensor:
+    """mean(w r^2), w = ``brighter`` (a number, or per pixel (B, 1, h, w)) where the target is
+    brighter than the fit (the pixel's channel mean of r above 0), else 1."""
     squares = residual.pow(2)
-    if brighter == 1.0:
+    if isinstance(brighter, float) and brighter == 1.0:
         return squares.mean()
     w = torch.where(residual.detach().mean(1, keepdim=True) > 0, brighter, 1.0)
     return (w * squares).mean()
