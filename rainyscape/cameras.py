@@ -182,6 +182,12 @@ class Window:
         dy = torch.randint(self.height - h + 1, (len(self),), generator=generator)
         return Window(self.x0 + dx, self.y0 + dy, w, h)
 
+    def table_values(self, table: Tensor, view_ids: Tensor) -> Tensor:
+        """Cut the windows of the views ``view_ids`` out of a per-view table (N, H, W, C) ->
+        (B, C, h, w), in the table's dtype."""
+        xs, ys = self.pixel_grid(table.device)
+        return table[view_ids.to(table.device)[:, None, None], ys, xs].permute(0, 3, 1, 2)
+
     def table_indices(self, view_ids: Tensor, height: int, width: int, device=None) -> Tensor:
         """Where each pixel of the windows of the views ``view_ids`` sits in a per-view table
         (views, ``height``, ``width``, ...) flattened over its first three dimensions: (B, h, w)."""

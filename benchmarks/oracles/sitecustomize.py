@@ -32,7 +32,6 @@ if os.environ.get("RS_ORACLE_MASK") or os.environ.get("RS_ORACLE_RAIN") or os.en
     import torch
 
     import rainyscape.engine.pipeline as _pipeline
-    from rainyscape.engine.sampling import window_values
     from rainyscape.postprocess.fusion import rain_mask
 
     _scene = {}
@@ -49,7 +48,7 @@ if os.environ.get("RS_ORACLE_MASK") or os.environ.get("RS_ORACLE_RAIN") or os.en
         layers = _scene["scene"].rain_layers
         if layers is None:
             raise SystemExit("oracle: the scene has no rain layers (a simulated scene is needed)")
-        return window_values(layers, view_ids, window).float().to(device)
+        return window.table_values(layers, view_ids).float().to(device)
 
     def _wet(view_ids, window, device, threshold):
         """(B, 1, h, w) 1 where the true rain exceeds ``threshold``, grown by RS_ORACLE_DILATE px."""

@@ -22,7 +22,6 @@ from torch import Tensor
 
 from rainyscape.cameras import Window
 from rainyscape.components import RenderOutput
-from rainyscape.engine.sampling import window_values
 from rainyscape.imaging.filters import box_sum
 
 
@@ -72,9 +71,9 @@ class RenderCache:
     @torch.no_grad()
     def read(self, view_ids: Tensor, window: Window) -> RenderOutput:
         """The cached render of ``window`` of the views (B, C, h, w, float32), holes filled."""
-        known = window_values(self.known, view_ids, window)
-        both = torch.cat([window_values(self.rgb, view_ids, window),
-                          window_values(self.depth, view_ids, window)], 1).float()
+        known = window.table_values(self.known, view_ids)
+        both = torch.cat([window.table_values(self.rgb, view_ids),
+                          window.table_values(self.depth, view_ids)], 1).float()
         filled = fill_holes(both, known)
         return RenderOutput(rgb=filled[:, :3], depth=filled[:, 3:])
 
@@ -117,7 +116,7 @@ class LayerCache:
         if len(missing):
             zeros = torch.zeros(len(missing), dtype=torch.long)
             self.write(missing, predict(missing, Window(zeros, zeros.clone(), self.size[1], self.size[0])))
-        return window_values(self.values, views, window).float()
+        return window.table_values(self.values, views).float()
 
     def state_dict(self) -> dict:
         return {"values": self.values, "known": self.known}

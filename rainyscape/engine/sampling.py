@@ -43,13 +43,6 @@ def sample_windows(pool: Tensor, count: int, size: int, width: int, height: int,
     return view_ids, Window(x0, y0, w, h)
 
 
-def window_values(table: Tensor, view_ids: Tensor, window: Window) -> Tensor:
-    """Cut the windows of the views ``view_ids`` out of a per-view table (N, H, W, C) ->
-    (B, C, h, w), in the table's dtype."""
-    xs, ys = window.pixel_grid(table.device)
-    return table[view_ids.to(table.device)[:, None, None], ys, xs].permute(0, 3, 1, 2)
-
-
 def gather_pixels(images: Tensor, view_ids: Tensor, window: Window) -> Tensor:
     """Cut windows out of uint8 images (N, H, W, 3) -> float (B, 3, h, w) in [0, 1]."""
-    return window_values(images, view_ids, window).float() / 255.0
+    return window.table_values(images, view_ids).float() / 255.0

@@ -12,7 +12,6 @@ from torch import Tensor
 from rainyscape.cameras import down_directions
 from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded
-from rainyscape.engine.sampling import window_values
 from rainyscape.imaging.streaks import streak_strength
 from rainyscape.losses.rain_losses import reconstruction_loss
 
@@ -62,7 +61,7 @@ class Photometric(Loss):
     def _brighter(self, ctx: LossContext) -> float | Tensor:
         if self.streaks is None or ctx.window is None:
             return self.config.brighter
-        gate = (window_values(self.streaks, ctx.view_ids, ctx.window) / self.config.streak_scale).clamp(max=1.0)
+        gate = (ctx.window.table_values(self.streaks, ctx.view_ids) / self.config.streak_scale).clamp(max=1.0)
         return 1.0 - (1.0 - self.config.brighter) * gate
 
     def __call__(self, ctx: LossContext) -> Tensor:
