@@ -84,6 +84,6 @@ def streak_strength(images: Tensor, angle: Tensor, tilts: Tensor, half_length: i
     (B, 1, h, w). A streak at least 2 ``half_length`` + 1 pixels long and up to ``half_width``
     wide scores its level over its background; a blob wider than that, an edge, a dot and a
     line that runs across score 0."""
-    luma = images if images.shape[1] == 1 else grayscale(images)
+    luma = grayscale(images)  # single-channel images unchanged
     return reduce(torch.maximum, (line_opening(across_ridge(luma, angle + t, half_width), angle + t, half_length)
                                   for t in tilts.tolist()))
