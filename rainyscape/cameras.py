@@ -144,6 +144,22 @@ def down_directions(cameras: Cameras, up: Tensor | None = None) -> Tensor:
     return torch.remainder(torch.atan2(cameras.fy * d[:, 1], cameras.fx * d[:, 0]), torch.pi)
 
 
+def line_directions(cameras: Cameras, direction: Tensor) -> Tensor:
+    """Per view and pixel (N, H, W), the direction (radians in [0, pi), from the image +x axis
+    towards +y) in which a 3D line along ``direction`` (3,) (world frame) runs through the pixel's
+    centre: towards the direction's vanishing point, so it is the same at any depth. A falling
+    drop's streak through a pixel runs this way whatever its distance."""
+    d = cameras.c2w[:, :3, :3].transpose(1, 2) @ direction.to(cameras.c2w)  # (N, 3), camera frame
+    xs = torch.arange(cameras.width, dtype=d.dtype, device=d.device) + 0.5
+    ys = torch.arange(cameras.height, dtype=d.dtype, device=d.device) + 0.5
+    # d/dt of the projection of X + t d is, up to a positive factor 1 / z, (fx dx - (u - cx) dz,
+    # fy dy - (v - cy) dz)
+    du = cameras.fx[:, None, None] * d[:, 0, None, None] - (xs[None, None, :] - cameras.cx[:, None, None]) * d[:, 2, None, None]
+    dv = cameras.fy[:, None, None] * d[:, 1, None, None] - (ys[None, :, None] - cameras.cy[:, None, None]) * d[:, 2, None, None]
+    du, dv = torch.broadcast_tensors(du, dv)
+    return torch.remainder(torch.atan2(dv, du), torch.pi)
+
+
 @dataclass
 class Window:
     """A rectangle of pixels per view: view b covers rows y0[b]:y0[b]+height, cols x0[b]:x0[b]+width."""

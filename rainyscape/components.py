@@ -346,7 +346,8 @@ class MeasuresRainAngles(Protocol):
     def angle_settings(self) -> dict[str, Any]:
         """Keyword arguments of :func:`rainyscape.imaging.angles.estimate_rain_angles`
         (``bins``, ``threshold``, ``smoothing``, ``kernel``, ``k``: directions per image,
-        ``max_tilt``: the most the streaks lean from the world's down in the view)."""
+        ``max_tilt``: the most the streaks lean from the world's down in the view, ``estimator``:
+        how the orientation histogram counts)."""
 
 
 @runtime_checkable

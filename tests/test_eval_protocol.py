@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -166,9 +167,12 @@ def test_each_views_rain_is_measured_near_its_own_down():
 def test_the_simulator_records_how_many_directions_its_rain_falls_in(tmp_path, tiny_scene_dir):
     from rainyscape.dataparsers.truth import simulated_rain
 
-    assert simulated_rain(tiny_scene_dir) == {"rain_directions": 1}
-    (tmp_path / "scene.json").write_text(json.dumps({"rain": {"wind2_deg": 20.0, "mix": 0.45}}))
-    assert simulated_rain(tmp_path) == {"rain_directions": 2}
+    record = simulated_rain(tiny_scene_dir)
+    assert record["rain_directions"] == 1 and len(record["rain_falls"]) == 1  # and where it falls
+    assert abs(np.linalg.norm(record["rain_falls"][0]) - 1) < 1e-5 and record["rain_falls"][0][1] < -0.8
+    (tmp_path / "scene.json").write_text(json.dumps({"rain": {"wind2_deg": 20.0, "mix": 0.45},
+                                                     "rain_falls": [[0.0, -1.0], [1.0, 0.0]]}))
+    assert simulated_rain(tmp_path) == {"rain_directions": 2}  # malformed directions are left out
     (tmp_path / "scene.json").write_text("{not json")
     assert simulated_rain(tmp_path) == {} and simulated_rain(tmp_path / "absent") == {}
 

@@ -36,9 +36,17 @@ def read_rain_layers(folder: Path, files: list[Path], size: tuple[int, int], cle
 
 def simulated_rain(root: Path) -> dict:
     """What the simulator's ``scene.json`` says of the true rain that evaluation needs: the
-    number of directions it falls in (``mix`` > 0: two); {} for a folder rs-synth did not write."""
+    number of directions it falls in (``mix`` > 0: two) and, where it records them, those
+    directions in the folder's world frame (``rain_falls``, (K, 3) unit vectors; the true
+    streak angles come from them); {} for a folder rs-synth did not write."""
     try:
-        rain = json.loads((root / "scene.json").read_text())["rain"]
-        return {"rain_directions": 2 if float(rain.get("mix", 0.0)) > 0 else 1}
-    except (OSError, ValueError, KeyError, TypeError):
+        info = json.loads((root / "scene.json").read_text())
+        out = {"rain_directions": 2 if float(info["rain"].get("mix", 0.0)) > 0 else 1}
+        falls = info.get("rain_falls")
+        if falls is not None:
+            falls = np.asarray(falls, dtype=np.float64)
+            if falls.ndim == 2 and falls.shape[1] == 3 and np.isfinite(falls).all():
+                out["rain_falls"] = falls.tolist()
+        return out
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return {}

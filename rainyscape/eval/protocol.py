@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from rainyscape.cameras import Cameras
 from rainyscape.components import MaskFusion
 from rainyscape.engine.pipeline import Pipeline
 from rainyscape.engine.run_folder import RunFolder
@@ -21,7 +22,7 @@ from rainyscape.eval.metric_keys import (COVERAGE, LPIPS, PSNR, PSNR_DRY, PSNR_I
                                          RAIN_RECOVERED, SSIM, Measure, Metric, control, post, rainy_input,
                                          render)
 from rainyscape.eval.perceptual import LpipsMetric, load_lpips
-from rainyscape.eval.rain_stats import angle_options, true_rain_directions, view_rain_stats
+from rainyscape.eval.rain_stats import angle_options, true_rain_directions, true_rain_falls, view_rain_stats
 from rainyscape.eval.report import write_report
 from rainyscape.eval.summary import summarize
 from rainyscape.eval.views import ViewImages, progress, view_images
@@ -88,10 +89,12 @@ def fusion_controls(pipeline: Pipeline, v: ViewImages) -> dict[str, tuple[float,
 
 
 def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict,
-                 controls: dict[str, tuple[float, Tensor]] | None = None, true_directions: int = 1) -> dict:
+                 controls: dict[str, tuple[float, Tensor]] | None = None, true_directions: int = 1,
+                 falls: tuple[Cameras, Tensor] | None = None) -> dict:
     """One view's row of ``per_view``: its images against the clean and the rainy ones, the
     fusion controls (``controls``: post-process key -> (coverage, control image)), and its
-    rain statistics (``true_directions``: of the true rain, see :func:`view_rain_stats`)."""
+    rain statistics (``true_directions`` and ``falls``: of the true rain, see
+    :func:`view_rain_stats`)."""
     split, controls = v.split, controls or {}
 
     def at(m: Measure) -> Metric:
@@ -115,7 +118,7 @@ def view_metrics(v: ViewImages, lpips: LpipsMetric, angle_opts: dict,
             row[rainy_input(PSNR_IN_RAIN).key] = region_psnr(v.rainy, v.clean, wet)[PSNR_IN_RAIN]
             for key, img in v.post.items():
                 row.update(keyed(region_metrics(img, v.clean, v.true_rain, wet), lambda m: post(m, key)))
-    row.update(view_rain_stats(v, angle_opts, true_directions))
+    row.update(view_rain_stats(v, angle_opts, true_directions, falls))
     return row
 
 
@@ -125,13 +128,15 @@ def evaluate_views(pipeline: Pipeline, lpips: LpipsMetric | None = None, keep: i
     ``keep`` training views."""
     lpips = lpips or load_lpips(pipeline.device)
     options, directions = angle_options(pipeline), true_rain_directions(pipeline)
+    falls = true_rain_falls(pipeline.scene)
     scene = pipeline.scene
     rows, kept = [], []
     if views is None:
         views = list(scene.train_indices) + list(scene.eval_indices)
     for i in progress(views, "evaluating views"):
         v = view_images(pipeline, i)
-        rows.append(view_metrics(v, lpips, options, fusion_controls(pipeline, v), directions))
+        view_falls = None if falls is None else (scene.cameras[i], falls)
+        rows.append(view_metrics(v, lpips, options, fusion_controls(pipeline, v), directions, view_falls))
         if v.split == "train" and len(kept) < keep:
             kept.append(v)
     return rows, kept

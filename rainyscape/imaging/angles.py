@@ -16,20 +16,36 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from rainyscape.imaging.gradients import gradient_orientation
+from rainyscape.imaging.gradients import gradient_orientation, structure_orientation
+
+
+# How a histogram counts orientations: "gradient" one vote per pixel of its own 3x3 gradient
+# (the paper's); "structure" the structure tensor's direction weighted by its coherent strength
+# (imaging/gradients.py: structure_orientation)
+ORIENTATION_ESTIMATORS = ("gradient", "structure")
 
 
 def orientation_histogram(residual: Tensor, bins: int = 60, threshold: float = 0.1,
-                          kernel: str = "scharr") -> Tensor:
-    """Per-image counts (B, bins) of gradient orientations over [0, pi).
+                          kernel: str = "scharr", estimator: str = "gradient",
+                          sigma: float = 2.0) -> Tensor:
+    """Per-image histograms (B, bins) of gradient orientations over [0, pi).
 
     ``residual``: (B, C, h, w). Pixels whose raw gradient magnitude (Sobel gain, grey levels
     in [0, 1]) is at most ``threshold`` are ignored (0.1 is about a 0.025 grey-level step).
+    ``estimator`` "gradient" counts each pixel's own gradient direction; "structure" adds each
+    pixel's structure-tensor direction (pooled over ``sigma`` px) with its coherent strength,
+    which a thin streak's pixels share and isolated pixels and tips do not.
     """
-    orientation, magnitude = gradient_orientation(residual, kernel)
+    if estimator == "gradient":
+        orientation, magnitude = gradient_orientation(residual, kernel)
+        weight = torch.ones_like(magnitude)
+    elif estimator == "structure":
+        orientation, weight, magnitude = structure_orientation(residual, kernel, sigma)
+    else:
+        raise ValueError(f"unknown orientation estimator '{estimator}'; choose one of {ORIENTATION_ESTIMATORS}")
     b = orientation.shape[0]
     index = (orientation / math.pi * bins).long().clamp_(0, bins - 1)
-    keep = (magnitude > threshold).to(orientation.dtype)
+    keep = weight * (magnitude > threshold).to(orientation.dtype)
     hist = torch.zeros(b, bins, dtype=orientation.dtype, device=orientation.device)
     return hist.scatter_add_(1, index.reshape(b, -1), keep.reshape(b, -1))
 
@@ -81,21 +97,34 @@ def fall_mask(down: Tensor, bins: int, max_tilt: float) -> Tensor:
 
 def estimate_rain_angles(residual: Tensor, bins: int = 60, k: int = 1, threshold: float = 0.1,
                          smoothing: int = 2, separation: int = 2, kernel: str = "scharr",
-                         down: Tensor | None = None, max_tilt: float = 90.0) -> tuple[Tensor, Tensor]:
+                         down: Tensor | None = None, max_tilt: float = 90.0,
+                         estimator: str = "gradient") -> tuple[Tensor, Tensor]:
     """Dominant gradient directions theta (B, k) in radians of residual images (B, C, h, w).
 
     ``smoothing`` [1, 2, 1] passes over the histogram before picking peaks (0: raw counts as
     in the paper). With ``down`` (B,) (radians: where the world's down runs in each image,
     :func:`rainyscape.cameras.down_directions`) and ``max_tilt`` under 90 degrees, only
     directions whose streaks lean at most ``max_tilt`` from it are candidates (scene edges
-    across the fall, a horizon or a roof, cannot win). Returns (theta, valid); ``valid`` is
-    False where an image had no gradient above ``threshold`` (or fewer than k distinct peaks).
+    across the fall, a horizon or a roof, cannot win). ``estimator``: how the histogram counts
+    (:func:`orientation_histogram`). Returns (theta, valid); ``valid`` is False where an image
+    had no gradient above ``threshold`` (or fewer than k distinct peaks).
     """
-    hist = smooth_histogram(orientation_histogram(residual, bins, threshold, kernel), smoothing)
+    hist = orientation_histogram(residual, bins, threshold, kernel, estimator)
+    theta, valid = histogram_angles(hist, k, smoothing, separation, down, max_tilt)
+    return theta.to(residual.device), valid
+
+
+def histogram_angles(hist: Tensor, k: int = 1, smoothing: int = 2, separation: int = 2,
+                     down: Tensor | None = None, max_tilt: float = 90.0) -> tuple[Tensor, Tensor]:
+    """The ``k`` dominant gradient directions (B, k) (radians) of orientation histograms
+    (B, bins), and their validity: the histogram smoothed, kept near ``down`` (see
+    :func:`estimate_rain_angles`) and its peaks picked."""
+    bins = hist.shape[1]
+    hist = smooth_histogram(hist, smoothing)
     if down is not None and max_tilt < 90.0:
         hist = hist * fall_mask(down.to(hist.device), bins, max_tilt)
     index, valid = histogram_peaks(hist, k, separation)
-    return bin_centers(index, bins).to(residual.device), valid
+    return bin_centers(index, bins), valid
 
 
 def streak_angle(theta: Tensor) -> Tensor:
@@ -139,6 +168,16 @@ def mean_angle_deg(angles: list[float]) -> float | None:
     """Circular mean of undirected angles in degrees (period 180): average the doubled angles."""
     if not angles:
         return None
-    s = sum(math.sin(math.radians(2 * a)) for a in angles)
-    c = sum(math.cos(math.radians(2 * a)) for a in angles)
+    theta = torch.deg2rad(torch.tensor(angles, dtype=torch.float64))
+    return weighted_mean_angle_deg(theta, torch.ones_like(theta))
+
+
+def weighted_mean_angle_deg(theta: Tensor, weights: Tensor) -> float | None:
+    """Circular mean in degrees [0, 180) of undirected angles ``theta`` (radians) weighted by
+    ``weights`` (same shape, >= 0); None when the weights sum to zero."""
+    w = weights.double()
+    if float(w.sum()) <= 0:
+        return None
+    s = float((w * torch.sin(2 * theta.double())).sum())
+    c = float((w * torch.cos(2 * theta.double())).sum())
     return math.degrees(math.atan2(s, c)) / 2 % 180.0

@@ -25,7 +25,7 @@ from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.gradients import GRADIENT_KERNELS, image_gradients, steer
-from rainyscape.imaging.angles import estimate_rain_angles, streak_angle
+from rainyscape.imaging.angles import ORIENTATION_ESTIMATORS, histogram_angles, orientation_histogram, streak_angle
 from rainyscape.scene import SceneData
 
 
@@ -75,6 +75,9 @@ class AdaptiveGradientRotation(Loss):
         # view are no candidates (rain falls; the world's down as the level cameras see it,
         # rainyscape.cameras.down_directions); 90: any direction, as the paper
         max_tilt: float = bounded(90.0, above=0.0, hi=90.0)
+        # how the orientation histogram counts: gradient (each pixel's 3x3 gradient, the paper's)
+        # | structure (the structure tensor's direction pooled over 2 px, weighted by its coherence)
+        estimator: str = "gradient"
 
     def __init__(self, config: "AdaptiveGradientRotation.Config | None" = None):
         super().__init__(config or self.Config())
@@ -83,6 +86,8 @@ class AdaptiveGradientRotation(Loss):
             raise ConfigError(f"agr.bins must be at least 3, got {c.bins}")
         if c.top_k < 1:
             raise ConfigError(f"agr.top_k must be at least 1, got {c.top_k}")
+        if c.estimator not in ORIENTATION_ESTIMATORS:
+            raise ConfigError(f"agr.estimator '{c.estimator}' is not one of {', '.join(ORIENTATION_ESTIMATORS)}")
         if c.kernel not in GRADIENT_KERNELS:
             raise ConfigError(f"agr.kernel '{c.kernel}' is not one of {', '.join(GRADIENT_KERNELS)}")
         # Last estimated streak direction(s) in degrees, per view id (for reports).
@@ -97,13 +102,16 @@ class AdaptiveGradientRotation(Loss):
         """:class:`rainyscape.components.MeasuresRainAngles`: how this term measures angles."""
         c = self.config
         return {"bins": c.bins, "threshold": c.threshold, "smoothing": c.smoothing, "kernel": c.kernel,
-                "k": int(c.top_k), "max_tilt": c.max_tilt}
+                "k": int(c.top_k), "max_tilt": c.max_tilt, "estimator": c.estimator}
 
     def estimate(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
         """Gradient directions theta (B, K) of the detached residual I - B, and validity."""
+        c = self.config
         residual = (ctx.target - ctx.rendered).detach()
         down = None if self.down is None else self.down[ctx.view_ids.to(self.down.device)]
-        return estimate_rain_angles(residual, down=down, **self.angle_settings())
+        hist = orientation_histogram(residual, c.bins, c.threshold, c.kernel, c.estimator)
+        theta, valid = histogram_angles(hist, int(c.top_k), c.smoothing, down=down, max_tilt=c.max_tilt)
+        return theta.to(residual.device), valid
 
     def __call__(self, ctx: LossContext) -> Tensor:
         rain = ctx.rain if ctx.rain is not None else torch.zeros_like(ctx.rendered)

@@ -40,7 +40,7 @@ from rainyscape.scene import SceneData
 from rainyscape.synth import layout
 from rainyscape.synth.params import SIM_VERSION, RainConfig
 from rainyscape.synth.presets import PRESETS
-from rainyscape.synth.rain import RainLayer, make_drop_field, render_rain
+from rainyscape.synth.rain import DropField, RainLayer, make_drop_field, render_rain
 
 # Rain levels: a preset's rain (drop sizes, wind, exposure) and its label strength.
 LEVEL_PRESETS = {"light": "yard", "medium": "crossroad", "heavy": "plaza"}
@@ -111,6 +111,7 @@ class RainRig:
     cameras: Cameras
     surface: np.ndarray  # (N,) metres
     metres_per_unit: float  # of the scene's normalised world
+    rotation: np.ndarray  # (3, 3) from the scene's normalised world to the rain frame
 
 
 def rain_rig(scene: SceneData, surface_m: float) -> RainRig:
@@ -128,7 +129,7 @@ def rain_rig(scene: SceneData, surface_m: float) -> RainRig:
     cams = scene.cameras
     rig_cams = Cameras(torch.from_numpy(out).float(), cams.fx.clone(), cams.fy.clone(),
                        cams.cx.clone(), cams.cy.clone(), cams.width, cams.height)
-    return RainRig(rig_cams, near * metres, metres)
+    return RainRig(rig_cams, near * metres, metres, rot)
 
 
 def drop_box(rig: RainRig, margin_m: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -195,6 +196,13 @@ def calibrate_density(rig: RainRig, clean: torch.Tensor, cfg: RainConfig, times:
     return best[1], best[2]
 
 
+def capture_falls(scene: SceneData, rig: RainRig, drops: DropField) -> np.ndarray:
+    """(K, 3) the drops' fall directions in the capture's own world frame (transforms.json's):
+    out of the rain frame, then out of the scene's normalisation."""
+    normalised = drops.fall_directions() @ rig.rotation
+    return normalised @ scene.transform[:3, :3].double().numpy()
+
+
 def add_rain(scene: SceneData, out: str | Path, rain: CaptureRain) -> Path:
     """Write ``scene`` (its images are the clean photos) with rain as a transforms.json scene
     folder: ``images_rain/`` (training), ``images_wo_rain/`` (the photos), ``rain/`` (the true
@@ -241,7 +249,8 @@ def add_rain(scene: SceneData, out: str | Path, rain: CaptureRain) -> Path:
         "simulator_version": SIM_VERSION, "kind": "real capture with simulated rain",
         "source": str(scene.source), "capture": scene.name, "level": rain.level, "mode": rain.mode,
         "seed": rain.seed, "width": scene.width, "height": scene.height, "views": n,
-        "rain": cfg.to_dict(), "label_db": rain.label_db, "calibrated_db": round(calibrated, 3),
+        "rain": cfg.to_dict(), "rain_falls": capture_falls(scene, rig, drops).round(6).tolist(),
+        "label_db": rain.label_db, "calibrated_db": round(calibrated, 3),
         "drops": len(drops.radii), "drop_box_m": [lo_box.tolist(), hi_box.tolist()],
         "metres_per_unit": rig.metres_per_unit, "surface_m": rain.surface_m,
         "drop_rgb": colour.tolist(),

@@ -71,6 +71,7 @@ class DropField:
     hi: np.ndarray
     rank: np.ndarray | None = None  # (N,) in [0, 1): which drops a view keeps below the size floor
     strength: np.ndarray | None = None  # (N,) streak alpha relative to ``opacity``
+    wind: np.ndarray | None = None  # (N,) which wind drives the drop: 0 the first, 1 the second (mix)
     _last: tuple | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -78,6 +79,17 @@ class DropField:
             self.rank = np.zeros(len(self.radii))
         if self.strength is None:
             self.strength = np.ones(len(self.radii))
+        if self.wind is None:
+            self.wind = np.zeros(len(self.radii), dtype=np.int64)
+
+    def fall_directions(self) -> np.ndarray:
+        """(K, 3) unit directions the drops fall along, the mean of their own per wind (K = 1, or
+        2 with ``mix``). Not the wind preset's angle: small drops fall slower, so the wind slants
+        the field more than it slants a drop of the mid radius. Evaluation's true streak angles
+        come from them (scene.json's ``rain_falls``)."""
+        unit = self.velocities / np.linalg.norm(self.velocities, axis=1, keepdims=True).clip(1e-12)
+        means = [unit[self.wind == k].mean(0) for k in np.unique(self.wind)]
+        return np.array([m / np.linalg.norm(m) for m in means])
 
     def __len__(self) -> int:
         return len(self.radii)
@@ -124,7 +136,8 @@ def make_drop_field(lo: np.ndarray, hi: np.ndarray, cfg: RainConfig, seed: int, 
     tint = 1.0 + 0.1 * stream(5).standard_normal(n)
     rank = stream(6).random(n)
     strength = 0.5 + 0.5 * stream(7).random(n)  # half to full opacity
-    return DropField(pos, vel, radii, tint, np.asarray(lo, float), np.asarray(hi, float), rank, strength)
+    return DropField(pos, vel, radii, tint, np.asarray(lo, float), np.asarray(hi, float), rank, strength,
+                     second.astype(np.int64))
 
 
 @dataclass
