@@ -154,9 +154,9 @@ def line_directions(cameras: Cameras, direction: Tensor) -> Tensor:
     ys = torch.arange(cameras.height, dtype=d.dtype, device=d.device) + 0.5
     # d/dt of the projection of X + t d is, up to a positive factor 1 / z, (fx dx - (u - cx) dz,
     # fy dy - (v - cy) dz)
-    du = cameras.fx[:, None, None] * d[:, 0, None, None] - (xs[None, None, :] - cameras.cx[:, None, None]) * d[:, 2, None, None]
-    dv = cameras.fy[:, None, None] * d[:, 1, None, None] - (ys[None, :, None] - cameras.cy[:, None, None]) * d[:, 2, None, None]
-    du, dv = torch.broadcast_tensors(du, dv)
+    fx, fy, cx, cy = (v[:, None, None] for v in (cameras.fx, cameras.fy, cameras.cx, cameras.cy))
+    dx, dy, dz = (d[:, i, None, None] for i in range(3))
+    du, dv = torch.broadcast_tensors(fx * dx - (xs[None, None, :] - cx) * dz, fy * dy - (ys[None, :, None] - cy) * dz)
     return torch.remainder(torch.atan2(dv, du), torch.pi)
 
 

@@ -109,22 +109,11 @@ def estimate_rain_angles(residual: Tensor, bins: int = 60, k: int = 1, threshold
     (:func:`orientation_histogram`). Returns (theta, valid); ``valid`` is False where an image
     had no gradient above ``threshold`` (or fewer than k distinct peaks).
     """
-    hist = orientation_histogram(residual, bins, threshold, kernel, estimator)
-    theta, valid = histogram_angles(hist, k, smoothing, separation, down, max_tilt)
-    return theta.to(residual.device), valid
-
-
-def histogram_angles(hist: Tensor, k: int = 1, smoothing: int = 2, separation: int = 2,
-                     down: Tensor | None = None, max_tilt: float = 90.0) -> tuple[Tensor, Tensor]:
-    """The ``k`` dominant gradient directions (B, k) (radians) of orientation histograms
-    (B, bins), and their validity: the histogram smoothed, kept near ``down`` (see
-    :func:`estimate_rain_angles`) and its peaks picked."""
-    bins = hist.shape[1]
-    hist = smooth_histogram(hist, smoothing)
+    hist = smooth_histogram(orientation_histogram(residual, bins, threshold, kernel, estimator), smoothing)
     if down is not None and max_tilt < 90.0:
         hist = hist * fall_mask(down.to(hist.device), bins, max_tilt)
     index, valid = histogram_peaks(hist, k, separation)
-    return bin_centers(index, bins), valid
+    return bin_centers(index, bins).to(residual.device), valid
 
 
 def streak_angle(theta: Tensor) -> Tensor:

@@ -80,7 +80,8 @@ def gradient_orientation(images: Tensor, kernel: str = "scharr") -> tuple[Tensor
     return orientation, magnitude
 
 
-def structure_orientation(images: Tensor, kernel: str = "scharr", sigma: float = 2.0) -> tuple[Tensor, Tensor, Tensor]:
+def structure_orientation(images: Tensor, kernel: str = "scharr",
+                          sigma: float = 2.0) -> tuple[Tensor, Tensor, Tensor]:
     """Orientation in [0, pi) of the structure tensor's leading eigenvector (the direction the
     grey image varies most in around each pixel, pooled by a Gaussian of ``sigma`` pixels),
     its coherent strength lambda1 - lambda2, and the pooled gradient magnitude sqrt(trace),

@@ -25,7 +25,7 @@ from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.gradients import GRADIENT_KERNELS, image_gradients, steer
-from rainyscape.imaging.angles import ORIENTATION_ESTIMATORS, histogram_angles, orientation_histogram, streak_angle
+from rainyscape.imaging.angles import ORIENTATION_ESTIMATORS, estimate_rain_angles, streak_angle
 from rainyscape.scene import SceneData
 
 
@@ -106,12 +106,9 @@ class AdaptiveGradientRotation(Loss):
 
     def estimate(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
         """Gradient directions theta (B, K) of the detached residual I - B, and validity."""
-        c = self.config
         residual = (ctx.target - ctx.rendered).detach()
         down = None if self.down is None else self.down[ctx.view_ids.to(self.down.device)]
-        hist = orientation_histogram(residual, c.bins, c.threshold, c.kernel, c.estimator)
-        theta, valid = histogram_angles(hist, int(c.top_k), c.smoothing, down=down, max_tilt=c.max_tilt)
-        return theta.to(residual.device), valid
+        return estimate_rain_angles(residual, down=down, **self.angle_settings())
 
     def __call__(self, ctx: LossContext) -> Tensor:
         rain = ctx.rain if ctx.rain is not None else torch.zeros_like(ctx.rendered)
