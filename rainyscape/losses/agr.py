@@ -22,7 +22,7 @@ from torch import Tensor
 
 from rainyscape.cameras import down_directions
 from rainyscape.components import Loss, LossContext
-from rainyscape.config.schema import bounded
+from rainyscape.config.schema import bounded, choice
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.gradients import GRADIENT_KERNELS, image_gradients, steer
 from rainyscape.imaging.angles import ORIENTATION_ESTIMATORS, estimate_rain_angles, streak_angle
@@ -77,7 +77,7 @@ class AdaptiveGradientRotation(Loss):
         max_tilt: float = bounded(90.0, above=0.0, hi=90.0)
         # how the orientation histogram counts: gradient (each pixel's 3x3 gradient, the paper's)
         # | structure (the structure tensor's direction pooled over 2 px, weighted by its coherence)
-        estimator: str = "gradient"
+        estimator: str = choice("gradient", ORIENTATION_ESTIMATORS)
 
     def __init__(self, config: "AdaptiveGradientRotation.Config | None" = None):
         super().__init__(config or self.Config())
