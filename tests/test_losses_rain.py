@@ -364,3 +364,68 @@ def test_floater_rays_weighs_each_ray_by_the_rain_at_its_pixel():
     plain = LossContext(output.rgb, output.rgb, {"rain": rain}, RenderOutput(rgb=output.rgb), torch.tensor([0]), 0, "joint")
     assert term(plain).item() == 0.0
     assert FloaterRays(FloaterRays.Config(measure="distortion")).render_extras == ("distortion",)
+
+
+def test_agr_view_directions_carry_a_whole_views_direction_to_its_patches():
+    """``directions=view``: a 4 x 4 patch whose residual is a scene edge (horizontal) takes the
+    streak direction its view's last whole-view batch found; a view with none estimates its
+    own; the kept directions survive a checkpoint. ``batch`` (the paper's) reads the edge."""
+    from rainyscape.cameras import Cameras, Window
+    from rainyscape.scene import SceneData
+
+    background, rainy, rain, _ = _streak_scene(70.0)
+    f = torch.full((2,), 50.0)
+    cams = Cameras(torch.eye(4).repeat(2, 1, 1), f, f, torch.full((2,), 32.0), torch.full((2,), 32.0), 64, 64)
+    scene = SceneData(name="toy", images=torch.zeros(2, 64, 64, 3, dtype=torch.uint8), cameras=cams,
+                      image_names=["0.png", "1.png"], train_indices=[0, 1], eval_indices=[],
+                      near=0.1, far=10.0, scene_box=torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    edge = torch.zeros(2, 3, 4, 4)
+    edge[..., 2:, :] = 0.8
+    patch = Window(torch.zeros(2, dtype=torch.long), torch.zeros(2, dtype=torch.long), 4, 4)
+
+    def patch_angles(agr):
+        ctx = LossContext(torch.zeros_like(edge), edge, {"rain": edge}, RenderOutput(rgb=edge), torch.tensor([0, 1]),
+                          step=0, phase="joint", window=patch)
+        agr(ctx)
+        return [agr.view_angles[v][0] for v in (0, 1)]
+
+    found = {}
+    for directions in ("batch", "view"):
+        agr = AdaptiveGradientRotation(AdaptiveGradientRotation.Config(directions=directions))
+        agr.setup(scene, torch.device("cpu"))
+        whole = LossContext(background, rainy, {"rain": rain}, RenderOutput(rgb=background), torch.tensor([0]),
+                            step=0, phase="joint", window=Window.full(cams[torch.tensor([0])]), record=False)
+        agr(whole)
+        found[directions] = patch_angles(agr)
+    assert abs(found["view"][0] - 70.0) <= 3.0  # view 0: its whole view's streaks
+    assert abs(found["view"][1] - 0.0) <= 3.0  # view 1: no whole view yet, its own patch's edge
+    assert all(abs(a - 0.0) <= 3.0 for a in found["batch"])
+    restored = AdaptiveGradientRotation(AdaptiveGradientRotation.Config(directions="view"))
+    restored.setup(scene, torch.device("cpu"))
+    restored.load_state_dict(agr.state_dict())
+    assert torch.equal(restored.kept[1], agr.kept[1]) and torch.allclose(restored.kept[0], agr.kept[0])
+    assert abs(patch_angles(restored)[0] - 70.0) <= 3.0
+    with pytest.raises(ConfigError):
+        AdaptiveGradientRotation(AdaptiveGradientRotation.Config(directions="crop"))
+
+
+def test_agr_reads_the_direction_where_the_head_sees_rain():
+    """``where_rain``: a residual whose strongest structure is a scene edge (horizontal stripes
+    in the top half) and whose rain (streaks at 70 degrees) is in the bottom half: with R over
+    the streaks only, the direction is the rain's; without the gate, the edges'."""
+    g = torch.Generator().manual_seed(3)
+    rain = streak_layer(64, 70.0, 25, g).expand(1, 3, 64, 64).clone()
+    rain[..., :32, :] = 0
+    edges = torch.zeros(1, 3, 64, 64)
+    edges[..., 2:32:4, :] = 1.0
+    rendered = torch.zeros(1, 3, 64, 64)
+    found = {}
+    for where in (0.0, 0.02):
+        agr = AdaptiveGradientRotation(AdaptiveGradientRotation.Config(where_rain=where))
+        agr(_ctx(rendered, edges + rain, rain))
+        found[where] = agr.view_angles[0][0]
+    assert abs(found[0.02] - 70.0) <= 3.0
+    assert abs(found[0.0] - 0.0) <= 3.0
+    nothing = AdaptiveGradientRotation(AdaptiveGradientRotation.Config(where_rain=0.02))
+    nothing(_ctx(rendered, edges + rain, torch.zeros_like(rain)))  # no rain seen: the whole residual
+    assert abs(nothing.view_angles[0][0] - 0.0) <= 3.0

@@ -28,6 +28,8 @@ from rainyscape.imaging.gradients import GRADIENT_KERNELS, image_gradients, stee
 from rainyscape.imaging.angles import ORIENTATION_ESTIMATORS, estimate_rain_angles, streak_angle
 from rainyscape.scene import SceneData
 
+AGR_DIRECTIONS = ("batch", "view")
+
 
 def mean_abs_derivative(images: Tensor, theta: Tensor, kernel: str = "scharr", gain: float = 1.0) -> Tensor:
     """mean |D_theta images| for every image and direction: (B, C, h, w), (B, K) -> (B, K).
@@ -78,6 +80,15 @@ class AdaptiveGradientRotation(Loss):
         # how the orientation histogram counts: gradient (each pixel's 3x3 gradient, the paper's)
         # | structure (the structure tensor's direction pooled over 2 px, weighted by its coherence)
         estimator: str = choice("gradient", ORIENTATION_ESTIMATORS)
+        # where the direction comes from: batch (each batch's own residual, as the paper) | view
+        # (a batch of whole views keeps each view's; a batch of patches or crops takes its views'
+        # kept directions, estimating only for a view that has none yet: a 4 x 4 patch's few
+        # gradients are mostly the scene's edges)
+        directions: str = choice("batch", AGR_DIRECTIONS)
+        # the direction is read off the residual only where the head's R (channel mean) exceeds
+        # this, so that scene edges the field has not fitted are no rain; an image where R
+        # exceeds it nowhere is read whole (0: everywhere, as the paper)
+        where_rain: float = bounded(0.0, lo=0.0, hi=1.0)
 
     def __init__(self, config: "AdaptiveGradientRotation.Config | None" = None):
         super().__init__(config or self.Config())
@@ -88,15 +99,25 @@ class AdaptiveGradientRotation(Loss):
             raise ConfigError(f"agr.top_k must be at least 1, got {c.top_k}")
         if c.estimator not in ORIENTATION_ESTIMATORS:
             raise ConfigError(f"agr.estimator '{c.estimator}' is not one of {', '.join(ORIENTATION_ESTIMATORS)}")
+        if c.directions not in AGR_DIRECTIONS:
+            raise ConfigError(f"agr.directions '{c.directions}' is not one of {', '.join(AGR_DIRECTIONS)}")
         if c.kernel not in GRADIENT_KERNELS:
             raise ConfigError(f"agr.kernel '{c.kernel}' is not one of {', '.join(GRADIENT_KERNELS)}")
         # Last estimated streak direction(s) in degrees, per view id (for reports).
         self.view_angles: dict[int, list[float]] = {}
         self.down: Tensor | None = None  # per view: where the world's down runs in it (radians)
+        # directions="view": each view's directions (N, K) from its last whole-view batch, and
+        # whether each was found; the image size tells a whole view from a patch
+        self.kept: tuple[Tensor, Tensor] | None = None
+        self.image_size = (0, 0)
 
     def setup(self, scene: SceneData, device: torch.device) -> None:
         if self.config.max_tilt < 90.0:
             self.down = down_directions(scene.cameras).to(device)
+        if self.config.directions == "view":
+            n, k = len(scene.cameras), int(self.config.top_k)
+            self.kept = (torch.zeros(n, k, device=device), torch.zeros(n, k, dtype=torch.bool, device=device))
+            self.image_size = (scene.cameras.width, scene.cameras.height)
 
     def angle_settings(self) -> dict:
         """:class:`rainyscape.components.MeasuresRainAngles`: how this term measures angles."""
@@ -108,11 +129,34 @@ class AdaptiveGradientRotation(Loss):
         """Gradient directions theta (B, K) of the detached residual I - B, and validity."""
         residual = (ctx.target - ctx.rendered).detach()
         down = None if self.down is None else self.down[ctx.view_ids.to(self.down.device)]
+        if self.config.where_rain > 0 and ctx.rain is not None:
+            seen = ctx.rain.detach().mean(dim=1, keepdim=True) > self.config.where_rain
+            seen = seen | ~seen.flatten(1).any(dim=1)[:, None, None, None]  # no rain seen: everywhere
+            residual = residual * seen
         return estimate_rain_angles(residual, down=down, **self.angle_settings())
+
+    def directions_for(self, ctx: LossContext) -> tuple[Tensor, Tensor]:
+        """theta (B, K) and validity for the batch (see ``Config.directions``)."""
+        if self.kept is None:
+            return self.estimate(ctx)
+        theta_kept, valid_kept = self.kept
+        views = ctx.view_ids.to(theta_kept.device)
+        whole = ctx.window is None or (ctx.window.width, ctx.window.height) == self.image_size
+        if whole:
+            theta, valid = self.estimate(ctx)
+            theta_kept[views], valid_kept[views] = theta.to(theta_kept.device), valid.to(valid_kept.device)
+            return theta, valid
+        device = ctx.rendered.device
+        kept = valid_kept[views].any(dim=1, keepdim=True).to(device)
+        theta_kept, valid_kept = theta_kept[views].to(device), valid_kept[views].to(device)
+        if bool(kept.all()):
+            return theta_kept, valid_kept
+        theta, valid = self.estimate(ctx)
+        return torch.where(kept, theta_kept, theta), torch.where(kept, valid_kept, valid)
 
     def __call__(self, ctx: LossContext) -> Tensor:
         rain = ctx.rain if ctx.rain is not None else torch.zeros_like(ctx.rendered)
-        theta, valid = ctx.memoized((id(self), "angles"), lambda: self.estimate(ctx))
+        theta, valid = ctx.memoized((id(self), "angles"), lambda: self.directions_for(ctx))
         if ctx.record:  # the network update's angles, not a latent update's crop
             self._record(ctx.view_ids, theta, valid)
         return agr_loss(ctx.rendered, ctx.target, rain, theta, valid,
@@ -131,7 +175,14 @@ class AdaptiveGradientRotation(Loss):
                 self.metrics[f"streak{suffix}_deg/view{int(vid)}"] = angle
 
     def state_dict(self) -> dict:
-        return {"view_angles": {str(k): v for k, v in self.view_angles.items()}}
+        state = {"view_angles": {str(k): v for k, v in self.view_angles.items()}}
+        if self.kept is not None:
+            state["kept"] = [t.tolist() for t in self.kept]
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         self.view_angles = {int(k): list(v) for k, v in state.get("view_angles", {}).items()}
+        if self.kept is not None and "kept" in state:
+            theta, valid = self.kept
+            self.kept = (torch.tensor(state["kept"][0], dtype=theta.dtype, device=theta.device),
+                         torch.tensor(state["kept"][1], dtype=torch.bool, device=valid.device))

@@ -17,7 +17,9 @@ and budget, read from it, never copied) with the parts both fields share
 
 - rain only adds light: in the warm-up the pixels the input shows brighter than the render
   weigh ``WARMUP_BRIGHTER``, so the head starts against a field that holds less of the rain;
-- a joint step of fewer patches and more single rays (``JOINT_PATCHES``, ``JOINT_RAYS``).
+- a joint step of fewer patches and more single rays (``JOINT_PATCHES``, ``JOINT_RAYS``);
+- the AGR term's direction per view from the whole-view step, where the head sees rain, read
+  with the structure tensor (``AGR_PLUS_NERF``).
 
 ``rainyscape-plus`` adds, on the Gaussians:
 
@@ -63,7 +65,7 @@ TV_CAP = 0.1
 # since where a reprojection misses an edge the evidence calls it rain (docs/rain.md, "The
 # neighbours say how much"; ungated, crossroad's and fern's dry pixels paid for it).
 MULTIVIEW_RAIN_WEIGHT = PAPER_WEIGHTS["reconstruction"]
-MULTIVIEW_RAIN_WHERE = 0.02
+HEAD_SEES_RAIN = 0.02
 
 # floater-opacity's weight (docs/rain.md): 5 gains held out (+0.35 dB on the cpu set, +0.14 on
 # fern) and is level on the training views; 10 gains a little more on the cpu set but spends
@@ -103,6 +105,16 @@ WARMUP_BRIGHTER = 0.5
 JOINT_PATCHES = 4
 JOINT_RAYS = 960
 
+# The AGR term's direction on the grid field: the paper takes it per patch, and the joint
+# step's 4 x 4 patches have 4 gradients each, mostly the scene's edges (the directions the term
+# steered by lay 30 to 37 degrees from the truth on the cpu set). Each step's whole view against
+# the field's cached render keeps its view's direction for the patches (``directions``), read
+# where the head sees rain (``where_rain``: edges the field has not fitted are no rain) with the
+# structure tensor, which reads the cpu set's short streaks (``estimator``): the directions
+# steered by come to 4 to 17 degrees, the renders level on both sets (docs/rain.md, "The
+# network update takes its view's direction").
+AGR_PLUS_NERF = {"estimator": "structure", "directions": "view", "where_rain": HEAD_SEES_RAIN}
+
 # Rain falls: the AGR loss and the head's lines for the field look for the streaks' direction within
 # FALL_TILT degrees of the world's down in each view (rainyscape.cameras.down_directions; the
 # cpu set's wind slants them by up to 30 degrees, perspective by more), so that a view whose
@@ -126,7 +138,7 @@ def with_plus_parts(paper: PipelineConfig, name: str) -> PipelineConfig:
 def _rainyscape_plus() -> PipelineConfig:
     cfg = with_plus_parts(_rainyscape_3dgs(), "rainyscape-plus")
     cfg.losses["multiview-rain"] = LossConfig("mv-rain", weight=MULTIVIEW_RAIN_WEIGHT,  # depth detached inside
-                                              options={"where_rain": MULTIVIEW_RAIN_WHERE})
+                                              options={"where_rain": HEAD_SEES_RAIN})
     cfg.losses["floater-opacity"] = LossConfig("floater-opacity", weight=FLOATER_WEIGHT)
     return cfg
 
@@ -142,6 +154,7 @@ rainyscape_plus = MethodSpec(
 def _rainyscape_plus_nerf() -> PipelineConfig:
     cfg = with_plus_parts(rainyscape_nerf.config, "rainyscape-plus-nerf")
     cfg.losses["photometric"].options = {**cfg.losses["photometric"].options, "brighter": WARMUP_BRIGHTER}
+    cfg.losses["agr"].options = {**cfg.losses["agr"].options, **AGR_PLUS_NERF}
     cfg.phases["joint"] = dataclasses.replace(cfg.phases["joint"],
                                               **joint_batch(cfg.phases["warmup"], JOINT_PATCHES, JOINT_RAYS))
     return cfg
@@ -149,7 +162,7 @@ def _rainyscape_plus_nerf() -> PipelineConfig:
 
 rainyscape_plus_nerf = MethodSpec(
     name="rainyscape-plus-nerf",
-    description="rainyscape-nerf plus a warm-up in which pixels brighter than the render weigh half (rain only adds light), joint steps of 4 patches and 960 single rays, capped TV, the rain direction looked for near each view's down, and on a CPU a full-resolution rain head whose R the field is fitted without, less the edges that run across the rain, raised where the residual stands out across it and kept only where the residual has the rain's colour",
+    description="rainyscape-nerf plus a warm-up in which pixels brighter than the render weigh half (rain only adds light), joint steps of 4 patches and 960 single rays, capped TV, the rain direction looked for near each view's down and kept per view from whole views where the head sees rain (read with the structure tensor), and on a CPU a full-resolution rain head whose R the field is fitted without, less the edges that run across the rain, raised where the residual stands out across it and kept only where the residual has the rain's colour",
     config=_rainyscape_plus_nerf(),
     gpu=list(rainyscape_nerf.gpu) + PAPER_LATENT_GPU,
 )
