@@ -107,8 +107,10 @@ class AdaptiveGradientRotation(Loss):
         self.view_angles: dict[int, list[float]] = {}
         self.down: Tensor | None = None  # per view: where the world's down runs in it (radians)
         # directions="view": each view's directions (N, K) from its last whole-view batch, and
-        # whether each was found; the image size tells a whole view from a patch
+        # whether each was found; ``found`` (N,), on the CPU, whether any was, so that a patch
+        # batch reads it without waiting for the device; the image size tells a whole view
         self.kept: tuple[Tensor, Tensor] | None = None
+        self.found = torch.zeros(0, dtype=torch.bool)
         self.image_size = (0, 0)
 
     def setup(self, scene: SceneData, device: torch.device) -> None:
@@ -117,6 +119,7 @@ class AdaptiveGradientRotation(Loss):
         if self.config.directions == "view":
             n, k = len(scene.cameras), int(self.config.top_k)
             self.kept = (torch.zeros(n, k, device=device), torch.zeros(n, k, dtype=torch.bool, device=device))
+            self.found = torch.zeros(n, dtype=torch.bool)
             self.image_size = (scene.cameras.width, scene.cameras.height)
 
     def angle_settings(self) -> dict:
@@ -140,19 +143,22 @@ class AdaptiveGradientRotation(Loss):
         if self.kept is None:
             return self.estimate(ctx)
         theta_kept, valid_kept = self.kept
-        views = ctx.view_ids.to(theta_kept.device)
-        whole = ctx.window is None or (ctx.window.width, ctx.window.height) == self.image_size
-        if whole:
+        views = ctx.view_ids.cpu()
+        if ctx.window is None or (ctx.window.width, ctx.window.height) == self.image_size:  # whole views
             theta, valid = self.estimate(ctx)
-            theta_kept[views], valid_kept[views] = theta.to(theta_kept.device), valid.to(valid_kept.device)
+            rows = views.to(theta_kept.device)
+            theta_kept[rows], valid_kept[rows] = theta.to(theta_kept.device), valid.to(valid_kept.device)
+            self.found[views] = valid.any(dim=1).cpu()
             return theta, valid
         device = ctx.rendered.device
-        kept = valid_kept[views].any(dim=1, keepdim=True).to(device)
-        theta_kept, valid_kept = theta_kept[views].to(device), valid_kept[views].to(device)
-        if bool(kept.all()):
-            return theta_kept, valid_kept
+        rows = views.to(theta_kept.device)
+        view_theta, view_valid = theta_kept[rows].to(device), valid_kept[rows].to(device)
+        found = self.found[views]
+        if bool(found.all()):
+            return view_theta, view_valid
         theta, valid = self.estimate(ctx)
-        return torch.where(kept, theta_kept, theta), torch.where(kept, valid_kept, valid)
+        found = found.to(device)[:, None]
+        return torch.where(found, view_theta, theta), torch.where(found, view_valid, valid)
 
     def __call__(self, ctx: LossContext) -> Tensor:
         rain = ctx.rain if ctx.rain is not None else torch.zeros_like(ctx.rendered)
@@ -186,3 +192,4 @@ class AdaptiveGradientRotation(Loss):
             theta, valid = self.kept
             self.kept = (torch.tensor(state["kept"][0], dtype=theta.dtype, device=theta.device),
                          torch.tensor(state["kept"][1], dtype=torch.bool, device=valid.device))
+            self.found = self.kept[1].any(dim=1).cpu()
