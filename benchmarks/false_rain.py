@@ -27,7 +27,7 @@ layers, over its training views:
   at the run's end), on the false rain and on the true rain's pixels;
 - with ``--colour``: how much of R the rain head's ``field_colour`` gate would keep at each
   start given, on the false rain and on the true rain's pixels, with the rain's colour fitted
-  on the run's R of at least 0.1 (rain/colour.py; docs/rain.md, "The field fitted without the
+  on the run's R of at least 0.1 (imaging/colour.py; docs/rain.md, "The field fitted without the
   rain that has the rain's colour").
 
     python benchmarks/false_rain.py RUN_DIR [--plain RUN_DIR] [--dilate 3 5] [--quantile 0 0.5] [--decoy 8]
@@ -46,10 +46,10 @@ import torch.nn.functional as F
 from rainyscape.cameras import Window
 from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image, view_images
+from rainyscape.imaging.colour import colour_weights, departure, fit_colour
 from rainyscape.losses.multiview_evidence import (backproject, evidence_with_reach, with_brightest,
                                                   neighbour_colours, neighbour_table, rain_evidence)
 from rainyscape.postprocess.fusion import rain_mask
-from rainyscape.rain.colour import colour_weights, departure, fit_colour
 from rainyscape.workflow import load_trained
 
 BINS = ((0.0, 0.01), (0.01, 0.02), (0.02, 0.05), (0.05, 0.1), (0.1, float("inf")))

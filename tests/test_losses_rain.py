@@ -75,6 +75,21 @@ def test_streak_scale_keeps_the_brighter_weight_for_streaks_and_not_for_detail()
     assert float(plain(ctx)) == pytest.approx(0.5 * r2, rel=1e-5)
 
 
+def test_colour_keeps_the_brighter_weight_for_a_residual_towards_white_and_not_for_coloured_detail():
+    """``colour``: of two pixels brighter than the same green render, the one brightened
+    towards white (rain: I = (1 - a) B + a) weighs ``brighter``, the one brighter in its own
+    green (a leaf the field has not resolved) weighs 1; a darker pixel weighs 1 either way."""
+    render = torch.tensor([0.2, 0.4, 0.2]).view(1, 3, 1, 1).expand(3, 3, 1, 1)
+    target = torch.stack([0.6 * render[0] + 0.4, torch.tensor([0.25, 0.7, 0.2]).view(3, 1, 1),
+                          render[0] - 0.1])
+    ctx = LossContext(render, target, {}, RenderOutput(rgb=render), torch.tensor([0, 0, 0]), 0, "warmup")
+    squares = (target - render).pow(2).mean((1, 2, 3))
+    term = Photometric(Photometric.Config(brighter=0.5, colour=0.1))
+    assert float(term(ctx)) == pytest.approx(float((0.5 * squares[0] + squares[1] + squares[2]) / 3), rel=1e-5)
+    plain = Photometric(Photometric.Config(brighter=0.5))
+    assert float(plain(ctx)) == pytest.approx(float((0.5 * squares[0] + 0.5 * squares[1] + squares[2]) / 3), rel=1e-5)
+
+
 def test_brighter_weight_fits_a_point_nearer_its_dry_views():
     # one 3D point seen dry in three views and brightened by rain in the fourth: the least-squares
     # fit is their mean, with the brighter views weighted less it stays nearer the dry value

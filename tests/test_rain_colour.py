@@ -1,9 +1,9 @@
-"""rain/colour.py and the rain head's field_colour: rain pulls a pixel towards one colour;
+"""imaging/colour.py and the rain head's field_colour: rain pulls a pixel towards one colour;
 detail the field missed leaves a residual in its own colour."""
 
 import torch
 
-from rainyscape.rain.colour import colour_weights, departure, fit_colour, solved_colour
+from rainyscape.imaging.colour import colour_weights, departure, fit_colour, solved_colour
 from tests.test_rain_head import _head, _scene
 
 RAIN = torch.tensor([0.9, 0.95, 1.0])

@@ -14,6 +14,7 @@ from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded
 from rainyscape.imaging.streaks import streak_strength
 from rainyscape.losses.rain_losses import reconstruction_loss
+from rainyscape.imaging.colour import colour_weights, departure
 
 # A streak in the input for ``streak_scale``: at least 5 px long along a direction within 30
 # degrees of the view's down (the wind's slant; perspective leans it more at the image's
@@ -49,6 +50,11 @@ class Photometric(Loss):
         # much (linearly less below it), weight 1 elsewhere: rain falls in streaks, the
         # detail a field has not resolved yet does not
         streak_scale: float = bounded(0.0, 0.0)
+        # > 0: ``brighter`` in full only where the residual runs from the render towards white
+        # (imaging/colour.py's departure under this, weight 1 at twice it): rain takes the light
+        # around it, near white, where detail the field has not resolved yet is brighter in its
+        # own colour. White because the warm-up has no head to fit the rain's colour yet.
+        colour: float = bounded(0.0, 0.0, 1.0)
 
     def __init__(self, config: "Photometric.Config | None" = None):
         super().__init__(config or self.Config())
@@ -59,10 +65,15 @@ class Photometric(Loss):
             self.streaks = streak_maps(scene.images, down_directions(scene.cameras)).to(device)
 
     def _brighter(self, ctx: LossContext) -> float | Tensor:
-        if self.streaks is None or ctx.window is None:
-            return self.config.brighter
-        gate = (ctx.window.table_values(self.streaks, ctx.view_ids) / self.config.streak_scale).clamp(max=1.0)
-        return 1.0 - (1.0 - self.config.brighter) * gate
+        gate = None
+        if self.streaks is not None and ctx.window is not None:
+            gate = (ctx.window.table_values(self.streaks, ctx.view_ids) / self.config.streak_scale).clamp(max=1.0)
+        if self.config.colour > 0:
+            white = torch.ones(3, device=ctx.rendered.device, dtype=ctx.rendered.dtype)
+            residual, background = (ctx.target - ctx.rendered).detach(), ctx.rendered.detach()
+            rain_coloured = colour_weights(departure(residual, background, white), self.config.colour)[:, None]
+            gate = rain_coloured if gate is None else gate * rain_coloured
+        return self.config.brighter if gate is None else 1.0 - (1.0 - self.config.brighter) * gate
 
     def __call__(self, ctx: LossContext) -> Tensor:
         if self.config.brighter == 1.0:

@@ -74,7 +74,7 @@ HEAD_SEES_RAIN = 0.02
 FLOATER_WEIGHT = 5.0
 
 # The field is fitted without R only where the residual I - B runs from B towards the rain's
-# colour (rain/colour.py; all of R under this departure, none at twice it): detail the field
+# colour (imaging/colour.py; all of R under this departure, none at twice it): detail the field
 # has not fitted yet leaves a residual in its own colour, which the full-resolution head takes
 # for rain on light rain over foliage (docs/rain.md, "The field fitted without the rain that
 # has the rain's colour"). On the Gaussians: the real set's training views +0.14 dB, the cpu
@@ -101,7 +101,7 @@ WARMUP_BRIGHTER = 0.5
 # gains on its training views and none is under nerf now; the cpu set gains 0.17 dB
 # (docs/benchmarks.md, "rainyscape-plus-nerf with 4 joint patches and the rain's colour that
 # cannot fall to black"). It leans on for_field: before the head's rain colour was kept from
-# falling to black (rain/colour.py), the clock's heavy rain lost 2.5 dB with it.
+# falling to black (imaging/colour.py), the clock's heavy rain lost 2.5 dB with it.
 JOINT_PATCHES = 4
 JOINT_RAYS = 960
 

@@ -36,8 +36,8 @@ from rainyscape.components import Energy, ParamGroup, RainHead
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.angles import residual_streak_angle
+from rainyscape.imaging.colour import colour_sums, colour_weights, departure, solved_colour
 from rainyscape.imaging.streaks import across_opening, across_ridge, line_opening
-from rainyscape.rain.colour import colour_sums, colour_weights, departure, solved_colour
 from rainyscape.rain.langevin import langevin_update
 from rainyscape.scene import SceneData
 
@@ -132,7 +132,7 @@ class RainPredictor(RainHead):
         # ... in a direction whose streaks lean at most this (degrees) from the world's down in
         # the view (as the AGR loss's max_tilt; 90: any direction)
         max_tilt: float = bounded(90.0, above=0.0, hi=90.0)
-        # ... and, above 0, only where the residual has the rain's colour (rain/colour.py: rain
+        # ... and, above 0, only where the residual has the rain's colour (imaging/colour.py: rain
         # pulls a pixel towards one colour, fitted on the head's strong R): all of R where
         # less than this share of the residual runs off that line, none at twice it. Detail
         # the field has not fitted, in its own colour, stays the field's. 0: off.
