@@ -90,6 +90,27 @@ def test_colour_keeps_the_brighter_weight_for_a_residual_towards_white_and_not_f
     assert float(plain(ctx)) == pytest.approx(float((0.5 * squares[0] + 0.5 * squares[1] + squares[2]) / 3), rel=1e-5)
 
 
+def test_a_fitted_rain_colour_keeps_the_brighter_weight_on_tinted_rain_where_white_does_not():
+    """``rain_colour=fitted``: rain tinted blue over a grey render departs from the line towards
+    white (full weight with ``white``); fitted from the brighter pixels over a few steps, the
+    colour is the rain's and the rain weighs ``brighter``. The fit survives a checkpoint."""
+    tint = torch.tensor([0.5, 0.7, 1.0]).view(1, 3, 1, 1)
+    render = torch.full((8, 3, 1, 1), 0.2)
+    target = 0.5 * render + 0.5 * tint
+    ctx = LossContext(render, target, {}, RenderOutput(rgb=render), torch.zeros(8, dtype=torch.long), 0, "warmup")
+    white = Photometric(Photometric.Config(brighter=0.5, colour=0.1))
+    fitted = Photometric(Photometric.Config(brighter=0.5, colour=0.1, rain_colour="fitted"))
+    for _ in range(20):
+        fitted(ctx)
+    assert torch.allclose(fitted.rain_colour, tint.flatten(), atol=0.02)
+    assert torch.allclose(white._brighter(ctx), torch.ones(8, 1, 1, 1))
+    assert torch.allclose(fitted._brighter(ctx), torch.full((8, 1, 1, 1), 0.5), atol=1e-3)
+    restored = Photometric(Photometric.Config(brighter=0.5, colour=0.1, rain_colour="fitted"))
+    restored.load_state_dict(fitted.state_dict())
+    assert torch.allclose(restored.rain_colour, fitted.rain_colour)
+    assert white.state_dict() == {}
+
+
 def test_brighter_weight_fits_a_point_nearer_its_dry_views():
     # one 3D point seen dry in three views and brightened by rain in the fourth: the least-squares
     # fit is their mean, with the brighter views weighted less it stays nearer the dry value

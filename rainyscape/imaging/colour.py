@@ -15,6 +15,8 @@ from torch import Tensor
 
 # the residual's length under which its direction is not read (a pixel the field fits)
 FLAT = 1e-3
+# a running fit of the colour: its sums forget this share a step
+COLOUR_FORGET = 0.1
 
 
 def _towards(background: Tensor, colour: Tensor) -> Tensor:
@@ -60,6 +62,16 @@ def solved_colour(num: Tensor, den: Tensor, previous: Tensor) -> Tensor:
     """The colour (3,) from :func:`colour_sums`' sums; ``previous`` where no pixel was counted
     (``den`` 0), so that an empty batch cannot set it to black. No host sync."""
     return torch.where(den > 0, (num / torch.where(den > 0, den, torch.ones_like(den))).clamp(0, 1), previous)
+
+
+def refit_colour(sums: Tensor, residual: Tensor, background: Tensor, colour: Tensor,
+                 where: Tensor) -> tuple[Tensor, Tensor]:
+    """One step of a running fit of the colour: ``sums`` (4,), the running numerator and
+    denominator of :func:`colour_sums`, forget ``COLOUR_FORGET`` and take this batch's; returns
+    the new sums and colour (``colour`` until a pixel it explains is counted: white at first)."""
+    num, den = colour_sums(residual, background, colour, where)
+    sums = sums * (1 - COLOUR_FORGET) + torch.cat([num, den[None]])
+    return sums, solved_colour(sums[:3], sums[3], colour)
 
 
 def fit_colour(residual: Tensor, background: Tensor, where: Tensor, steps: int = 100) -> Tensor:

@@ -11,10 +11,10 @@ from torch import Tensor
 
 from rainyscape.cameras import down_directions
 from rainyscape.components import Loss, LossContext
-from rainyscape.config.schema import bounded
+from rainyscape.config.schema import bounded, choice
 from rainyscape.imaging.streaks import streak_strength
 from rainyscape.losses.rain_losses import reconstruction_loss
-from rainyscape.imaging.colour import colour_weights, departure
+from rainyscape.imaging.colour import colour_weights, departure, refit_colour
 
 # A streak in the input for ``streak_scale``: at least 5 px long along a direction within 30
 # degrees of the view's down (the wind's slant; perspective leans it more at the image's
@@ -23,6 +23,9 @@ STREAK_TILTS_DEG = (-30.0, -15.0, 0.0, 15.0, 30.0)
 STREAK_HALF_LENGTH = 2
 STREAK_HALF_WIDTH = 2
 STREAK_VIEWS_AT_ONCE = 8  # views whose streak maps are computed together (memory)
+# ``rain_colour=fitted``: the colour is fitted on the pixels the input shows brighter than the
+# render by this much (channel mean), as the head fits it where its R reaches 0.1
+COLOUR_BRIGHTER = 0.1
 
 
 def streak_maps(images: Tensor, down: Tensor) -> Tensor:
@@ -50,15 +53,21 @@ class Photometric(Loss):
         # much (linearly less below it), weight 1 elsewhere: rain falls in streaks, the
         # detail a field has not resolved yet does not
         streak_scale: float = bounded(0.0, 0.0)
-        # > 0: ``brighter`` in full only where the residual runs from the render towards white
-        # (imaging/colour.py's departure under this, weight 1 at twice it): rain takes the light
-        # around it, near white, where detail the field has not resolved yet is brighter in its
-        # own colour. White because the warm-up has no head to fit the rain's colour yet.
+        # > 0: ``brighter`` in full only where the residual runs from the render towards the
+        # rain's colour (imaging/colour.py's departure under this, weight 1 at twice it): rain
+        # takes the light around it, where detail the field has not resolved yet is brighter in
+        # its own colour
         colour: float = bounded(0.0, 0.0, 1.0)
+        # ... that colour: white, or fitted as the run goes on the pixels brighter than the
+        # render by COLOUR_BRIGHTER (a running fit from white, as the head's; the warm-up has
+        # no head yet to fit it)
+        rain_colour: str = choice("white", ("white", "fitted"))
 
     def __init__(self, config: "Photometric.Config | None" = None):
         super().__init__(config or self.Config())
         self.streaks: Tensor | None = None  # (N, H, W, 1), with streak_scale
+        self.rain_colour: Tensor | None = None  # (3,), with colour
+        self.colour_sums: Tensor | None = None  # (4,), with rain_colour=fitted
 
     def setup(self, scene, device: torch.device) -> None:
         if self.config.brighter < 1.0 and self.config.streak_scale > 0:
@@ -69,11 +78,31 @@ class Photometric(Loss):
         if self.streaks is not None and ctx.window is not None:
             gate = (ctx.window.table_values(self.streaks, ctx.view_ids) / self.config.streak_scale).clamp(max=1.0)
         if self.config.colour > 0:
-            white = torch.ones(3, device=ctx.rendered.device, dtype=ctx.rendered.dtype)
             residual, background = (ctx.target - ctx.rendered).detach(), ctx.rendered.detach()
-            rain_coloured = colour_weights(departure(residual, background, white), self.config.colour)[:, None]
+            colour = self._rain_colour(residual, background)
+            rain_coloured = colour_weights(departure(residual, background, colour), self.config.colour)[:, None]
             gate = rain_coloured if gate is None else gate * rain_coloured
         return self.config.brighter if gate is None else 1.0 - (1.0 - self.config.brighter) * gate
+
+    def _rain_colour(self, residual: Tensor, background: Tensor) -> Tensor:
+        if self.rain_colour is None:
+            self.rain_colour = torch.ones(3, device=residual.device, dtype=residual.dtype)
+            self.colour_sums = torch.zeros(4, device=residual.device, dtype=residual.dtype)
+        self.rain_colour, self.colour_sums = self.rain_colour.to(residual), self.colour_sums.to(residual)
+        if self.config.rain_colour == "fitted":
+            self.colour_sums, self.rain_colour = refit_colour(self.colour_sums, residual, background, self.rain_colour,
+                                                              residual.mean(1) >= COLOUR_BRIGHTER)
+        return self.rain_colour
+
+    def state_dict(self) -> dict:
+        if self.rain_colour is None or self.config.rain_colour != "fitted":
+            return {}
+        return {"rain_colour": self.rain_colour.tolist(), "colour_sums": self.colour_sums.tolist()}
+
+    def load_state_dict(self, state: dict) -> None:
+        if "rain_colour" in state:
+            self.rain_colour = torch.tensor(state["rain_colour"])
+            self.colour_sums = torch.tensor(state["colour_sums"])
 
     def __call__(self, ctx: LossContext) -> Tensor:
         if self.config.brighter == 1.0:

@@ -36,7 +36,7 @@ from rainyscape.components import Energy, ParamGroup, RainHead
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.angles import residual_streak_angle
-from rainyscape.imaging.colour import colour_sums, colour_weights, departure, solved_colour
+from rainyscape.imaging.colour import colour_weights, departure, refit_colour
 from rainyscape.imaging.streaks import across_opening, across_ridge, line_opening
 from rainyscape.rain.langevin import langevin_update
 from rainyscape.scene import SceneData
@@ -49,10 +49,8 @@ DENSE_REGION_SHARE = 8
 # this many pixels across the streaks (all of a streak up to 2 px wide, the middle of a 3 px one:
 # the cpu recipe's streaks at 128 to 240 px)
 RIDGE_HALF_WIDTH = 2
-# field_colour: the rain's colour is fitted on the pixels where R reaches this, its sums
-# kept as a running average that forgets this share a step
+# field_colour: the rain's colour is fitted on the pixels where R reaches this
 COLOUR_RAIN = 0.1
-COLOUR_FORGET = 0.1
 
 
 def camera_vectors(cameras: Cameras) -> Tensor:
@@ -228,10 +226,9 @@ class RainPredictor(RainHead):
         if self.training:
             strong = layer.amax(1) >= COLOUR_RAIN
             if bool(strong.any()):
-                num, den = colour_sums(residual, background, self.rain_colour, strong)
-                self.colour_sums.mul_(1 - COLOUR_FORGET).add_(torch.cat([num, den[None]]))
-                # until a pixel the colour explains is counted, the colour stays (white at first)
-                self.rain_colour.copy_(solved_colour(self.colour_sums[:3], self.colour_sums[3], self.rain_colour))
+                sums, colour = refit_colour(self.colour_sums, residual, background, self.rain_colour, strong)
+                self.colour_sums.copy_(sums)
+                self.rain_colour.copy_(colour)
         departed = departure(residual, background, self.rain_colour)
         return colour_weights(departed, self.config.field_colour)[:, None]
 
