@@ -12,9 +12,9 @@ from torch import Tensor
 from rainyscape.cameras import down_directions
 from rainyscape.components import Loss, LossContext
 from rainyscape.config.schema import bounded, choice
+from rainyscape.imaging.colour import colour_weights, departure, refit_colour
 from rainyscape.imaging.streaks import streak_strength
 from rainyscape.losses.rain_losses import reconstruction_loss
-from rainyscape.imaging.colour import colour_weights, departure, refit_colour
 
 # A streak in the input for ``streak_scale``: at least 5 px long along a direction within 30
 # degrees of the view's down (the wind's slant; perspective leans it more at the image's
