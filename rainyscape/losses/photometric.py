@@ -66,8 +66,8 @@ class Photometric(Loss):
     def __init__(self, config: "Photometric.Config | None" = None):
         super().__init__(config or self.Config())
         self.streaks: Tensor | None = None  # (N, H, W, 1), with streak_scale
-        self.rain_colour: Tensor | None = None  # (3,), with colour
-        self.colour_sums: Tensor | None = None  # (4,), with rain_colour=fitted
+        self.rain_colour: Tensor | None = None  # (3,) and its fit's sums (4,), with rain_colour=fitted
+        self.colour_sums: Tensor | None = None
 
     def setup(self, scene, device: torch.device) -> None:
         if self.config.brighter < 1.0 and self.config.streak_scale > 0:
@@ -85,17 +85,16 @@ class Photometric(Loss):
         return self.config.brighter if gate is None else 1.0 - (1.0 - self.config.brighter) * gate
 
     def _rain_colour(self, residual: Tensor, background: Tensor) -> Tensor:
-        if self.rain_colour is None:
-            self.rain_colour = torch.ones(3, device=residual.device, dtype=residual.dtype)
-            self.colour_sums = torch.zeros(4, device=residual.device, dtype=residual.dtype)
-        self.rain_colour, self.colour_sums = self.rain_colour.to(residual), self.colour_sums.to(residual)
-        if self.config.rain_colour == "fitted":
-            self.colour_sums, self.rain_colour = refit_colour(self.colour_sums, residual, background, self.rain_colour,
-                                                              residual.mean(1) >= COLOUR_BRIGHTER)
+        if self.config.rain_colour == "white":
+            return torch.ones(3, device=residual.device, dtype=residual.dtype)
+        if self.rain_colour is None:  # the running fit starts from white
+            self.rain_colour, self.colour_sums = torch.ones(3), torch.zeros(4)
+        self.colour_sums, self.rain_colour = refit_colour(self.colour_sums.to(residual), residual, background,
+                                                          self.rain_colour.to(residual), residual.mean(1) >= COLOUR_BRIGHTER)
         return self.rain_colour
 
     def state_dict(self) -> dict:
-        if self.rain_colour is None or self.config.rain_colour != "fitted":
+        if self.rain_colour is None:
             return {}
         return {"rain_colour": self.rain_colour.tolist(), "colour_sums": self.colour_sums.tolist()}
 
