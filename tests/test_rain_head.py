@@ -252,6 +252,23 @@ def test_the_field_takes_more_of_r_where_the_residual_stands_out_across_the_stre
     assert float(tripled[streaks > 0].max()) < 0.3 + 1e-4  # never more than the residual shows
 
 
+def test_the_field_keeps_the_bright_side_of_a_blurred_edge():
+    """``field_edge``: R on a streak over a background the field has right stays subtracted; R
+    on the bright side of an edge along the streaks, whose dark side the field renders too
+    bright (the residual's negative partner 1 px across), is left to the field; 0 keeps R."""
+    scene = _scene(n=1, height=48, width=48)
+    ys, xs = torch.meshgrid(torch.arange(48.0), torch.arange(48.0), indexing="ij")
+    streaks = ((xs % 8 == 3) & (ys % 24 < 14) & (xs < 30)).float() * 0.3
+    bright, dark = (xs == 38).float(), (xs == 39).float()  # a blurred vertical edge
+    residual = (streaks + 0.2 * bright - 0.2 * dark).expand(1, 3, 48, 48)
+    rain = (streaks + 0.2 * bright).expand(1, 3, 48, 48)
+    view = torch.tensor([0])
+    kept = _head(scene, field_edge=0.5).for_field(rain, residual, view)[0, 0]
+    assert torch.allclose(kept[streaks > 0], streaks[streaks > 0], atol=1e-4)
+    assert float(kept[bright > 0].max()) < 0.01  # the estimated direction is a little off vertical
+    assert _head(scene).for_field(rain, residual, view) is rain
+
+
 def test_the_fields_lines_run_near_the_views_down():
     """``max_tilt``: where horizontal scene edges outweigh the streaks in the residual, the lines
     still run along the streaks, or across them (the view is upright: the world's down runs

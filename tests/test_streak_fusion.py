@@ -14,7 +14,8 @@ from rainyscape.engine.pipeline import Pipeline, build_pipeline
 from rainyscape.errors import ConfigError
 from rainyscape.eval.protocol import evaluate_pipeline
 from rainyscape.imaging.metrics import psnr
-from rainyscape.imaging.streaks import across_opening, across_ridge, line_mean, line_opening, streak_strength
+from rainyscape.imaging.streaks import (across_opening, across_ridge, darker_partner, line_mean, line_opening,
+                                        streak_strength)
 from rainyscape.postprocess.fusion import THRESHOLD_RULES, rain_mask, view_threshold
 from rainyscape.postprocess.streak_fusion import StreakFusion, streak_mask
 from _eval_fixtures import OracleField, make_scene
@@ -98,6 +99,19 @@ def test_across_ridge_measures_streaks_over_their_background_and_not_edges_along
     assert float(ridge[:, 12:16].max()) < 1e-6  # neither side of the step stands out
     # a 2 px streak seen only one pixel across (half_width 1) has itself for a neighbour
     assert float(across_ridge(image, torch.tensor([math.pi / 2]), 1)[0, 0, 3:19, 9:11].max()) < 1e-6
+
+
+def test_darker_partner_finds_a_blurred_edges_dark_side_and_not_a_streaks_background():
+    residual = torch.zeros(1, 1, 16, 24)
+    residual[0, 0, :, 4] = 0.3  # a streak over a background fitted right
+    residual[0, 0, :, 14] = 0.2  # an edge's bright side, fitted too dark ...
+    residual[0, 0, :, 16] = -0.1  # ... its dark side, 2 px across, fitted too bright
+    partner = darker_partner(residual, torch.tensor([math.pi / 2]), 2)[0, 0]
+    assert float(partner[:, 4].max()) < 1e-6
+    assert torch.allclose(partner[:, 14], torch.full((16,), 0.1), atol=1e-6)
+    assert float(darker_partner(residual, torch.tensor([math.pi / 2]), 1)[0, 0, :, 14].max()) < 1e-6  # out of reach
+    # along the edge (a horizontal line) no pixel has the dark side for a neighbour
+    assert float(darker_partner(residual, torch.tensor([0.0]), 2)[0, 0, :, 14].max()) < 1e-6
 
 
 def _streaks(h: int, w: int, angle_deg: float, period: float, seed: int) -> torch.Tensor:

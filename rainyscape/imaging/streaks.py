@@ -77,6 +77,16 @@ def across_ridge(images: Tensor, angle: Tensor, half_width: int) -> Tensor:
     return best.clamp_min(0)
 
 
+def darker_partner(images: Tensor, angle: Tensor, half_width: int) -> Tensor:
+    """How far the darkest of each pixel's neighbours up to ``half_width`` pixels away across
+    ``angle`` (B,) radians lies below 0 in (B, C, h, w) ``images`` (never below 0). On a
+    residual I - B it is the dark side of an edge the fit blurs, too bright next to a bright
+    side fitted too dark; a streak over a background the fit has right has none."""
+    samples = list(line_samples(images, angle + math.pi / 2, half_width))
+    del samples[half_width]  # the pixel itself
+    return (-reduce(torch.minimum, samples)).clamp_min(0)
+
+
 def streak_strength(images: Tensor, angle: Tensor, tilts: Tensor, half_length: int, half_width: int) -> Tensor:
     """How far each pixel of (B, C, h, w) ``images`` (their luma) stands out as part of a bright
     streak that runs within ``tilts`` (radians, offsets tried) of ``angle`` (B,): the largest over

@@ -36,8 +36,8 @@ from rainyscape.components import Energy, ParamGroup, RainHead
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.angles import residual_streak_angle
-from rainyscape.imaging.colour import colour_weights, departure, refit_colour
-from rainyscape.imaging.streaks import across_opening, across_ridge, line_opening
+from rainyscape.imaging.colour import FLAT, colour_weights, departure, refit_colour
+from rainyscape.imaging.streaks import across_opening, across_ridge, darker_partner, line_opening
 from rainyscape.rain.langevin import langevin_update
 from rainyscape.scene import SceneData
 
@@ -51,6 +51,9 @@ DENSE_REGION_SHARE = 8
 RIDGE_HALF_WIDTH = 2
 # field_colour: the rain's colour is fitted on the pixels where R reaches this
 COLOUR_RAIN = 0.1
+# field_edge's reach across the streaks: a blurred edge's dark side lies within a few pixels of
+# its bright side at 128 to 240 px
+EDGE_HALF_WIDTH = 3
 
 
 def camera_vectors(cameras: Cameras) -> Tensor:
@@ -127,6 +130,13 @@ class RainPredictor(RainHead):
         # at its streaks, and the rest stayed in the field (docs/rain.md). An edge along the
         # streaks does not stand out, so it does not raise R. 1: off.
         field_gain: float = bounded(1.0, 1.0, 10.0)
+        # ... and, above 0, less where the residual has a darker partner across the streaks
+        # (imaging/streaks.py's darker_partner, up to EDGE_HALF_WIDTH pixels to each side): all
+        # of R where the partner lies less than this share of the pixel's own residual below
+        # 0, none at twice it. The bright side of an edge the field blurs looks like a streak
+        # when the edge runs along the fall, but the fit is too bright on its dark side; rain
+        # over a background the field has right has no such partner. 0: off.
+        field_edge: float = bounded(0.0, 0.0, 10.0)
         # ... in a direction whose streaks lean at most this (degrees) from the world's down in
         # the view (as the AGR loss's max_tilt; 90: any direction)
         max_tilt: float = bounded(90.0, above=0.0, hi=90.0)
@@ -207,9 +217,9 @@ class RainPredictor(RainHead):
 
     def _reshapes_for_field(self) -> bool:
         """Whether :meth:`for_field` changes R along the streaks (field_across, field_streaks,
-        field_gain)."""
+        field_gain, field_edge)."""
         c = self.config
-        return c.field_streaks > 0 or c.field_across > 0 or c.field_gain > 1.0
+        return c.field_streaks > 0 or c.field_across > 0 or c.field_gain > 1.0 or c.field_edge > 0
 
     def for_field(self, layer: Tensor, residual: Tensor, view_ids: Tensor,
                   background: Tensor | None = None) -> Tensor:
@@ -247,6 +257,10 @@ class RainPredictor(RainHead):
         if c.field_gain > 1.0:
             ridge = across_ridge(residual, angle, RIDGE_HALF_WIDTH)
             shaped = torch.maximum(shaped, torch.minimum(c.field_gain * shaped, ridge))
+        if c.field_edge > 0:
+            level = residual.mean(1, keepdim=True)
+            partner = darker_partner(level, angle, EDGE_HALF_WIDTH)
+            shaped = shaped * (2.0 - partner / (c.field_edge * level.clamp_min(FLAT))).clamp(0, 1)
         # a window whose residual shows no direction keeps its whole R
         return torch.where(valid[:, None, None, None], shaped, layer)
 
