@@ -25,13 +25,17 @@ layers, over its training views:
   the pixel by that many times it (docs/rain.md, "The neighbours' brightest within a pixel");
 - with ``--field``: how much of R the field is fitted without (the rain head's ``for_field``
   at the run's end), on the false rain and on the true rain's pixels;
+- with ``--edge``: how much of R the rain head's ``field_edge`` gate would keep at each share
+  given, on the false rain and on the true rain's pixels (the darker partner up to
+  EDGE_HALF_WIDTH px across the streaks, found as the head finds them; docs/rain.md, "The field
+  keeps the bright side of an edge it blurs");
 - with ``--colour``: how much of R the rain head's ``field_colour`` gate would keep at each
   start given, on the false rain and on the true rain's pixels, with the rain's colour fitted
   on the run's R of at least 0.1 (imaging/colour.py; docs/rain.md, "The field fitted without the
   rain that has the rain's colour").
 
     python benchmarks/false_rain.py RUN_DIR [--plain RUN_DIR] [--dilate 3 5] [--quantile 0 0.5] [--decoy 8]
-        [--colour 0.1 0.2] [--reach 0 1 2] [--reach-gain 2] [--field]
+        [--colour 0.1 0.2] [--edge 0.25 0.5] [--reach 0 1 2] [--reach-gain 2] [--field]
 """
 
 from __future__ import annotations
@@ -43,13 +47,16 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from rainyscape.cameras import Window
+from rainyscape.cameras import Window, down_directions
 from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image, view_images
+from rainyscape.imaging.angles import residual_streak_angle
 from rainyscape.imaging.colour import colour_weights, departure, fit_colour
+from rainyscape.imaging.streaks import edge_weights
 from rainyscape.losses.multiview_evidence import (backproject, evidence_with_reach, with_brightest,
                                                   neighbour_colours, neighbour_table, rain_evidence)
 from rainyscape.postprocess.fusion import rain_mask
+from rainyscape.rain.head import EDGE_HALF_WIDTH
 from rainyscape.workflow import load_trained
 
 BINS = ((0.0, 0.01), (0.01, 0.02), (0.02, 0.05), (0.05, 0.1), (0.1, float("inf")))
@@ -102,6 +109,25 @@ def colour_gate(views: dict, starts: list[float]) -> None:
         kept = r * colour_weights(departed, start)
         share = {k: float(kept[m].sum() / r[m].sum().clamp_min(1e-12)) for k, m in masks.items()}
         print(f"  start {start}: {share['false']:.2f} / {share['true']:.2f}")
+
+
+def edge_gate(views: dict, scene, shares: list[float], max_tilt: float) -> None:
+    """Print the share of R the field_edge gate keeps at each share, on the false rain and on
+    the true rain's pixels."""
+    down = down_directions(scene.cameras)
+    sums = {(s, k): [0.0, 0.0] for s in shares for k in ("false", "true")}
+    for i, v in views.items():
+        residual = (v.rainy - v.rendered)[None]
+        angle, _ = residual_streak_angle(residual, down[[i]], max_tilt)
+        r = v.rain.amax(0)
+        for share in shares:
+            kept = r * edge_weights(residual, angle, EDGE_HALF_WIDTH, share)[0, 0]
+            for key, m in (("false", false_rain(v)), ("true", wet(v))):
+                sums[(share, key)][0] += float(r[m].sum()); sums[(share, key)][1] += float(kept[m].sum())
+    print("edge gate: share of R kept on false rain / on the true rain's pixels")
+    for share in shares:
+        kept = {k: sums[(share, k)][1] / max(sums[(share, k)][0], 1e-12) for k in ("false", "true")}
+        print(f"  share {share}: {kept['false']:.2f} / {kept['true']:.2f}")
 
 
 @torch.no_grad()
@@ -166,6 +192,7 @@ def main() -> None:
                          "by this many pixels, averaged over --decoy-box pixels (0: no decoy)")
     ap.add_argument("--decoy-box", type=int, default=15)
     ap.add_argument("--colour", type=float, nargs="*", default=[], help="field_colour gates: their starts")
+    ap.add_argument("--edge", type=float, nargs="*", default=[], help="field_edge gates: their shares")
     ap.add_argument("--reach", type=int, nargs="*", default=[], help="mv-rain's evidence at these reaches (px)")
     ap.add_argument("--reach-gain", type=float, default=0.0, help="... with this reach_gain")
     ap.add_argument("--field", action="store_true", help="the share of R the field is fitted without")
@@ -179,6 +206,7 @@ def main() -> None:
     views = {i: view_images(pipeline, i) for i in train}
     rows = {b: [0.0, 0.0, 0] for b in (*BINS, "false")}  # squared error (method, plain), pixels
     darker = 0.0  # the render less the clean view, summed over the false rain's pixels
+    all_error = 0.0  # the squared error summed over every training pixel
     amounts = {"rain": [0.0] * 4, "bright": [0.0] * 4}  # sums of I - clean, R, I - B, B - clean
     amount_pixels = dict.fromkeys(amounts, 0)
     for i, v in views.items():
@@ -198,6 +226,7 @@ def main() -> None:
             m = false_pixels if b == "false" else dry & (r >= b[0]) & (r < b[1])
             rows[b][0] += float(err[m].sum()); rows[b][1] += float(err_plain[m].sum()); rows[b][2] += int(m.sum())
         darker += float((v.rendered - v.clean).mean(0)[false_pixels].sum())
+        all_error += float(err.sum())
     false = rows.pop("false")
     dry_count = sum(n for _, _, n in rows.values())
     print(f"{args.run_dir}: dry pixels by predicted rain R (share of dry pixels: PSNR{', plain run' if plain else ''})")
@@ -208,7 +237,8 @@ def main() -> None:
     print(f"  all dry pixels: {db(total[0], dry_count):.2f}" + (f" / {db(total[1], dry_count):.2f}" if plain else ""))
     print(f"  false rain (R >= {FALSE_RAIN}, more than 2 px from rain): {100 * false[2] / dry_count:.1f} %: "
           f"{db(false[0], false[2]):.2f}" + (f" / {db(false[1], false[2]):.2f}" if plain else "")
-          + f", render - clean {darker / max(false[2], 1):+.3f}")
+          + f", render - clean {darker / max(false[2], 1):+.3f}, {100 * false[0] / all_error:.0f} % of the "
+          "training views' squared error")
     print("rain pixels: I - clean, R, I - B, B - clean (means)")
     for key, sums in amounts.items():
         n = amount_pixels[key]
@@ -217,6 +247,8 @@ def main() -> None:
         field_share(pipeline, views)
     if args.colour:
         colour_gate(views, args.colour)
+    if args.edge:
+        edge_gate(views, scene, args.edge, pipeline.rain_head.config.max_tilt)
     if args.reach:
         evidence_at_reach(views, scene, args.reach, args.reach_gain, args.views)
     if not args.dilate:

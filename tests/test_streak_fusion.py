@@ -14,8 +14,8 @@ from rainyscape.engine.pipeline import Pipeline, build_pipeline
 from rainyscape.errors import ConfigError
 from rainyscape.eval.protocol import evaluate_pipeline
 from rainyscape.imaging.metrics import psnr
-from rainyscape.imaging.streaks import (across_opening, across_ridge, darker_partner, line_mean, line_opening,
-                                        streak_strength)
+from rainyscape.imaging.streaks import (across_opening, across_ridge, darker_partner, edge_weights, line_mean,
+                                        line_opening, streak_strength)
 from rainyscape.postprocess.fusion import THRESHOLD_RULES, rain_mask, view_threshold
 from rainyscape.postprocess.streak_fusion import StreakFusion, streak_mask
 from _eval_fixtures import OracleField, make_scene
@@ -112,6 +112,10 @@ def test_darker_partner_finds_a_blurred_edges_dark_side_and_not_a_streaks_backgr
     assert float(darker_partner(residual, torch.tensor([math.pi / 2]), 1)[0, 0, :, 14].max()) < 1e-6  # out of reach
     # along the edge (a horizontal line) no pixel has the dark side for a neighbour
     assert float(darker_partner(residual, torch.tensor([0.0]), 2)[0, 0, :, 14].max()) < 1e-6
+    # the weights: the partner is half the bright side's residual, so 1 at share 0.5, 0 at 0.25
+    for share, edge in ((0.5, 1.0), (0.25, 0.0), (1 / 3, 0.5)):
+        w = edge_weights(residual.expand(1, 3, 16, 24), torch.tensor([math.pi / 2]), 2, share)[0, 0]
+        assert torch.allclose(w[:, 4], torch.ones(16)) and torch.allclose(w[:, 14], torch.full((16,), edge), atol=1e-5)
 
 
 def _streaks(h: int, w: int, angle_deg: float, period: float, seed: int) -> torch.Tensor:

@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from rainyscape.imaging.colour import FLAT
 from rainyscape.imaging.gradients import grayscale
 
 
@@ -85,6 +86,16 @@ def darker_partner(images: Tensor, angle: Tensor, half_width: int) -> Tensor:
     samples = list(line_samples(images, angle + math.pi / 2, half_width))
     del samples[half_width]  # the pixel itself
     return (-reduce(torch.minimum, samples)).clamp_min(0)
+
+
+def edge_weights(residual: Tensor, angle: Tensor, half_width: int, share: float) -> Tensor:
+    """(B, 1, h, w) weights of residual images I - B (B, C, h, w): 1 where the
+    :func:`darker_partner` of their channel mean up to ``half_width`` pixels across ``angle``
+    (B,) lies less than ``share`` times the pixel's own residual below 0, falling to 0 at twice
+    that: 0 on the bright side of an edge the fit blurs, 1 on a streak over a fitted background."""
+    level = residual.mean(1, keepdim=True)
+    partner = darker_partner(level, angle, half_width)
+    return (2.0 - partner / (share * level.clamp_min(FLAT))).clamp(0, 1)
 
 
 def streak_strength(images: Tensor, angle: Tensor, tilts: Tensor, half_length: int, half_width: int) -> Tensor:

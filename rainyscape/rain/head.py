@@ -36,8 +36,8 @@ from rainyscape.components import Energy, ParamGroup, RainHead
 from rainyscape.config.schema import bounded
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.angles import residual_streak_angle
-from rainyscape.imaging.colour import FLAT, colour_weights, departure, refit_colour
-from rainyscape.imaging.streaks import across_opening, across_ridge, darker_partner, line_opening
+from rainyscape.imaging.colour import colour_weights, departure, refit_colour
+from rainyscape.imaging.streaks import across_opening, across_ridge, edge_weights, line_opening
 from rainyscape.rain.langevin import langevin_update
 from rainyscape.scene import SceneData
 
@@ -258,9 +258,7 @@ class RainPredictor(RainHead):
             ridge = across_ridge(residual, angle, RIDGE_HALF_WIDTH)
             shaped = torch.maximum(shaped, torch.minimum(c.field_gain * shaped, ridge))
         if c.field_edge > 0:
-            level = residual.mean(1, keepdim=True)
-            partner = darker_partner(level, angle, EDGE_HALF_WIDTH)
-            shaped = shaped * (2.0 - partner / (c.field_edge * level.clamp_min(FLAT))).clamp(0, 1)
+            shaped = shaped * edge_weights(residual, angle, EDGE_HALF_WIDTH, c.field_edge)
         # a window whose residual shows no direction keeps its whole R
         return torch.where(valid[:, None, None, None], shaped, layer)
 
