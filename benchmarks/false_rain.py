@@ -47,7 +47,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from rainyscape.cameras import Window, down_directions
+from rainyscape.cameras import Window
 from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image, view_images
 from rainyscape.imaging.angles import residual_streak_angle
@@ -91,43 +91,43 @@ def vote(pooled: torch.Tensor, depth: torch.Tensor, cameras, view: int, neighbou
     return torch.where((valid.sum(1) >= 2) & torch.isfinite(ref), ref, torch.zeros_like(ref))
 
 
+def print_kept(title: str, label: str, views: dict, params: list[float], weigh) -> None:
+    """Print, at each of ``params``, the share of R that a gate keeps on the false rain and on
+    the true rain's pixels; ``weigh(index, view, param)`` gives the gate's (H, W) weights."""
+    sums = {(p, k): [0.0, 0.0] for p in params for k in ("false", "true")}
+    for i, v in views.items():
+        r = v.rain.amax(0)
+        masks = {"false": false_rain(v), "true": wet(v)}
+        for p in params:
+            kept = r * weigh(i, v, p)
+            for key, m in masks.items():
+                sums[(p, key)][0] += float(r[m].sum()); sums[(p, key)][1] += float(kept[m].sum())
+    print(f"{title}: share of R kept on false rain / on the true rain's pixels")
+    for p in params:
+        kept = {k: sums[(p, k)][1] / max(sums[(p, k)][0], 1e-12) for k in ("false", "true")}
+        print(f"  {label} {p}: {kept['false']:.2f} / {kept['true']:.2f}")
+
+
 def colour_gate(views: dict, starts: list[float]) -> None:
-    """Print the share of R the field_colour gate keeps at each start, on the false rain and
-    on the true rain's pixels."""
+    """The field_colour gate at each start, with the rain's colour fitted on the run's R of at
+    least 0.1 (the head's running fit, to its fixed point)."""
     rainy = torch.stack([v.rainy for v in views.values()])
     rendered = torch.stack([v.rendered for v in views.values()]).clamp(0, 1)
-    rain = torch.stack([v.rain for v in views.values()])
-    residual, strong = rainy - rendered, rain.amax(1) >= 0.1
-    colour = fit_colour(residual, rendered, strong)  # the head's running fit, to its fixed point
-    departed = departure(residual, rendered, colour)
-    r = rain.amax(1)
-    masks = {"false": torch.stack([false_rain(v) for v in views.values()]),
-             "true": torch.stack([wet(v) for v in views.values()])}
-    print(f"colour gate (the rain's colour {[round(x, 3) for x in colour.tolist()]}): "
-          "share of R kept on false rain / on the true rain's pixels")
-    for start in starts:
-        kept = r * colour_weights(departed, start)
-        share = {k: float(kept[m].sum() / r[m].sum().clamp_min(1e-12)) for k, m in masks.items()}
-        print(f"  start {start}: {share['false']:.2f} / {share['true']:.2f}")
+    strong = torch.stack([v.rain for v in views.values()]).amax(1) >= 0.1
+    colour = fit_colour(rainy - rendered, rendered, strong)
+    departed = {i: departure((v.rainy - v.rendered.clamp(0, 1))[None], v.rendered.clamp(0, 1)[None], colour)[0]
+                for i, v in views.items()}
+    print_kept(f"colour gate (the rain's colour {[round(x, 3) for x in colour.tolist()]})", "start", views, starts,
+               lambda i, v, start: colour_weights(departed[i], start))
 
 
-def edge_gate(views: dict, scene, shares: list[float], max_tilt: float) -> None:
-    """Print the share of R the field_edge gate keeps at each share, on the false rain and on
-    the true rain's pixels."""
-    down = down_directions(scene.cameras)
-    sums = {(s, k): [0.0, 0.0] for s in shares for k in ("false", "true")}
+def edge_gate(views: dict, head, shares: list[float]) -> None:
+    """The field_edge gate at each share, the streaks' direction found as the head finds it."""
+    angles = {}
     for i, v in views.items():
-        residual = (v.rainy - v.rendered)[None]
-        angle, _ = residual_streak_angle(residual, down[[i]], max_tilt)
-        r = v.rain.amax(0)
-        for share in shares:
-            kept = r * edge_weights(residual, angle, EDGE_HALF_WIDTH, share)[0, 0]
-            for key, m in (("false", false_rain(v)), ("true", wet(v))):
-                sums[(share, key)][0] += float(r[m].sum()); sums[(share, key)][1] += float(kept[m].sum())
-    print("edge gate: share of R kept on false rain / on the true rain's pixels")
-    for share in shares:
-        kept = {k: sums[(share, k)][1] / max(sums[(share, k)][0], 1e-12) for k in ("false", "true")}
-        print(f"  share {share}: {kept['false']:.2f} / {kept['true']:.2f}")
+        angles[i] = residual_streak_angle((v.rainy - v.rendered)[None], head.down[[i]], head.config.max_tilt)[0]
+    print_kept("edge gate", "share", views, shares,
+               lambda i, v, share: edge_weights((v.rainy - v.rendered)[None], angles[i], EDGE_HALF_WIDTH, share)[0, 0])
 
 
 @torch.no_grad()
@@ -248,7 +248,7 @@ def main() -> None:
     if args.colour:
         colour_gate(views, args.colour)
     if args.edge:
-        edge_gate(views, scene, args.edge, pipeline.rain_head.config.max_tilt)
+        edge_gate(views, pipeline.rain_head, args.edge)
     if args.reach:
         evidence_at_reach(views, scene, args.reach, args.reach_gain, args.views)
     if not args.dilate:
