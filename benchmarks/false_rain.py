@@ -27,15 +27,16 @@ layers, over its training views:
   at the run's end), on the false rain and on the true rain's pixels;
 - with ``--edge``: how much of R the rain head's ``field_edge`` gate would keep at each share
   given, on the false rain and on the true rain's pixels (the darker partner up to
-  EDGE_HALF_WIDTH px across the streaks, found as the head finds them; docs/rain.md, "The field
-  keeps the bright side of an edge it blurs");
+  EDGE_HALF_WIDTH px across the streaks, found as the head finds them; ``--edge-sides one``:
+  only as far as it is darker than the one on the other side; docs/rain.md, "The field keeps
+  the bright side of an edge it blurs");
 - with ``--colour``: how much of R the rain head's ``field_colour`` gate would keep at each
   start given, on the false rain and on the true rain's pixels, with the rain's colour fitted
   on the run's R of at least 0.1 (imaging/colour.py; docs/rain.md, "The field fitted without the
   rain that has the rain's colour").
 
     python benchmarks/false_rain.py RUN_DIR [--plain RUN_DIR] [--dilate 3 5] [--quantile 0 0.5] [--decoy 8]
-        [--colour 0.1 0.2] [--edge 0.25 0.5] [--reach 0 1 2] [--reach-gain 2] [--field]
+        [--colour 0.1 0.2] [--edge 0.25 0.5] [--edge-sides one] [--reach 0 1 2] [--reach-gain 2] [--field]
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ from rainyscape.eval.protocol import RAIN_PIXEL
 from rainyscape.eval.views import render_image, view_images
 from rainyscape.imaging.angles import residual_streak_angle
 from rainyscape.imaging.colour import colour_weights, departure, fit_colour
-from rainyscape.imaging.streaks import edge_weights
+from rainyscape.imaging.streaks import EDGE_SIDES, edge_weights
 from rainyscape.losses.multiview_evidence import (backproject, evidence_with_reach, with_brightest,
                                                   neighbour_colours, neighbour_table, rain_evidence)
 from rainyscape.postprocess.fusion import rain_mask
@@ -121,13 +122,15 @@ def colour_gate(views: dict, starts: list[float]) -> None:
                lambda i, v, start: colour_weights(departed[i], start))
 
 
-def edge_gate(views: dict, head, shares: list[float]) -> None:
-    """The field_edge gate at each share, the streaks' direction found as the head finds it."""
+def edge_gate(views: dict, head, shares: list[float], sides: str) -> None:
+    """The field_edge gate at each share (its partner on ``sides``), the streaks' direction
+    found as the head finds it."""
     angles = {}
     for i, v in views.items():
         angles[i] = residual_streak_angle((v.rainy - v.rendered)[None], head.down[[i]], head.config.max_tilt)[0]
-    print_kept("edge gate", "share", views, shares,
-               lambda i, v, share: edge_weights((v.rainy - v.rendered)[None], angles[i], EDGE_HALF_WIDTH, share)[0, 0])
+    print_kept(f"edge gate ({sides})", "share", views, shares,
+               lambda i, v, share: edge_weights((v.rainy - v.rendered)[None], angles[i], EDGE_HALF_WIDTH, share,
+                                                sides)[0, 0])
 
 
 @torch.no_grad()
@@ -193,6 +196,7 @@ def main() -> None:
     ap.add_argument("--decoy-box", type=int, default=15)
     ap.add_argument("--colour", type=float, nargs="*", default=[], help="field_colour gates: their starts")
     ap.add_argument("--edge", type=float, nargs="*", default=[], help="field_edge gates: their shares")
+    ap.add_argument("--edge-sides", choices=EDGE_SIDES, default="either", help="... their partner's sides")
     ap.add_argument("--reach", type=int, nargs="*", default=[], help="mv-rain's evidence at these reaches (px)")
     ap.add_argument("--reach-gain", type=float, default=0.0, help="... with this reach_gain")
     ap.add_argument("--field", action="store_true", help="the share of R the field is fitted without")
@@ -248,7 +252,7 @@ def main() -> None:
     if args.colour:
         colour_gate(views, args.colour)
     if args.edge:
-        edge_gate(views, pipeline.rain_head, args.edge)
+        edge_gate(views, pipeline.rain_head, args.edge, args.edge_sides)
     if args.reach:
         evidence_at_reach(views, scene, args.reach, args.reach_gain, args.views)
     if not args.dilate:

@@ -269,6 +269,25 @@ def test_the_field_keeps_the_bright_side_of_a_blurred_edge():
     assert _head(scene).for_field(rain, residual, view) is rain
 
 
+def test_the_field_keeps_r_on_a_streak_it_holds_in_part_with_one_sided_edges():
+    """``field_edge_sides=one``: where the field holds a fainter, wider copy of a streak (the
+    residual too bright on both sides of it) R stays subtracted, where ``either`` hands part of
+    it back; the bright side of a blurred edge is left to the field either way."""
+    scene = _scene(n=1, height=48, width=48)
+    ys, xs = torch.meshgrid(torch.arange(48.0), torch.arange(48.0), indexing="ij")
+    streaks = ((xs % 8 == 3) & (ys % 24 < 14) & (xs < 30)).float() * 0.3
+    held = ((xs % 8 >= 2) & (xs % 8 <= 4)).float() * ((ys % 24 < 14) & (xs < 30)).float() * 0.12
+    bright, dark = (xs == 38).float(), (xs == 39).float()  # a blurred vertical edge
+    residual = (streaks - held + 0.2 * bright - 0.2 * dark).expand(1, 3, 48, 48)
+    rain = (streaks + 0.2 * bright).expand(1, 3, 48, 48)
+    view = torch.tensor([0])
+    on = streaks > 0
+    one = _head(scene, field_edge=0.5, field_edge_sides="one").for_field(rain, residual, view)[0, 0]
+    either = _head(scene, field_edge=0.5).for_field(rain, residual, view)[0, 0]
+    assert float(one[on].mean()) > 0.95 * 0.3 and float(either[on].mean()) < 0.9 * 0.3
+    assert float(one[bright > 0].max()) < 0.01 and float(either[bright > 0].max()) < 0.01
+
+
 def test_the_fields_lines_run_near_the_views_down():
     """``max_tilt``: where horizontal scene edges outweigh the streaks in the residual, the lines
     still run along the streaks, or across them (the view is upright: the world's down runs

@@ -118,6 +118,22 @@ def test_darker_partner_finds_a_blurred_edges_dark_side_and_not_a_streaks_backgr
         assert torch.allclose(w[:, 4], torch.ones(16)) and torch.allclose(w[:, 14], torch.full((16,), edge), atol=1e-5)
 
 
+def test_a_one_sided_partner_tells_a_blurred_edge_from_a_streak_the_fit_holds_in_part():
+    residual = torch.zeros(1, 1, 16, 24)
+    residual[0, 0, :, 4] = 0.3  # a streak whose fit holds a wider, fainter copy ...
+    residual[0, 0, :, 3] = residual[0, 0, :, 5] = -0.05  # ... too bright on both sides
+    residual[0, 0, :, 14] = 0.2  # an edge's bright side, fitted too dark ...
+    residual[0, 0, :, 16] = -0.1  # ... its dark side, on one side only
+    across = torch.tensor([math.pi / 2])
+    either, one = (darker_partner(residual, across, 2, sides)[0, 0] for sides in ("either", "one"))
+    assert torch.allclose(either[:, 4], torch.full((16,), 0.05), atol=1e-6)  # either side: the streak has partners
+    assert float(one[:, 4].max()) < 1e-6  # one side: they cancel
+    assert torch.allclose(one[:, 14], torch.full((16,), 0.1), atol=1e-6)  # the edge keeps its partner
+    w = edge_weights(residual.expand(1, 3, 16, 24), across, 2, 0.1, "one")[0, 0]
+    assert torch.allclose(w[:, 4], torch.ones(16)) and float(w[:, 14].max()) < 1e-6
+    assert float(edge_weights(residual.expand(1, 3, 16, 24), across, 2, 0.1)[0, 0, :, 4].max()) < 1.0
+
+
 def _streaks(h: int, w: int, angle_deg: float, period: float, seed: int) -> torch.Tensor:
     """Parallel anti-aliased lines (H, W) about a pixel wide along ``angle_deg`` (from +x
     towards +y): jagged ones would bend the estimated direction by a few degrees."""

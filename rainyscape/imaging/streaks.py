@@ -78,23 +78,35 @@ def across_ridge(images: Tensor, angle: Tensor, half_width: int) -> Tensor:
     return best.clamp_min(0)
 
 
-def darker_partner(images: Tensor, angle: Tensor, half_width: int) -> Tensor:
+EDGE_SIDES = ("either", "one")
+
+
+def darker_partner(images: Tensor, angle: Tensor, half_width: int, sides: str = "either") -> Tensor:
     """How far the darkest of each pixel's neighbours up to ``half_width`` pixels away across
     ``angle`` (B,) radians lies below 0 in (B, C, h, w) ``images`` (never below 0). On a
     residual I - B it is the dark side of an edge the fit blurs, too bright next to a bright
-    side fitted too dark; a streak over a background the fit has right has none."""
+    side fitted too dark; a streak over a background the fit has right has none.
+
+    ``sides="one"``: how much further below 0 the darkest neighbour on one side lies than the
+    darkest on the other. A blurred edge has its dark partner on one side only; a streak the
+    fit holds in part, spread wider and fainter, leaves partners on both sides, and has none."""
     samples = list(line_samples(images, angle + math.pi / 2, half_width))
+    if sides == "one":
+        below = [(-reduce(torch.minimum, half)).clamp_min(0)
+                 for half in (samples[:half_width], samples[half_width + 1:])]
+        return (below[0] - below[1]).abs()
     del samples[half_width]  # the pixel itself
     return (-reduce(torch.minimum, samples)).clamp_min(0)
 
 
-def edge_weights(residual: Tensor, angle: Tensor, half_width: int, share: float) -> Tensor:
+def edge_weights(residual: Tensor, angle: Tensor, half_width: int, share: float, sides: str = "either") -> Tensor:
     """(B, 1, h, w) weights of residual images I - B (B, C, h, w): 1 where the
-    :func:`darker_partner` of their channel mean up to ``half_width`` pixels across ``angle``
-    (B,) lies less than ``share`` times the pixel's own residual below 0, falling to 0 at twice
-    that: 0 on the bright side of an edge the fit blurs, 1 on a streak over a fitted background."""
+    :func:`darker_partner` (on ``sides``) of their channel mean up to ``half_width`` pixels
+    across ``angle`` (B,) lies less than ``share`` times the pixel's own residual below 0,
+    falling to 0 at twice that: 0 on the bright side of an edge the fit blurs, 1 on a streak
+    over a fitted background."""
     level = residual.mean(1, keepdim=True)
-    partner = darker_partner(level, angle, half_width)
+    partner = darker_partner(level, angle, half_width, sides)
     return (2.0 - partner / (share * level.clamp_min(FLAT))).clamp(0, 1)
 
 

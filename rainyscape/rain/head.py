@@ -33,11 +33,11 @@ from torch import Tensor, nn
 
 from rainyscape.cameras import Cameras, Window, down_directions
 from rainyscape.components import Energy, ParamGroup, RainHead
-from rainyscape.config.schema import bounded
+from rainyscape.config.schema import bounded, choice
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.angles import residual_streak_angle
 from rainyscape.imaging.colour import colour_weights, departure, refit_colour
-from rainyscape.imaging.streaks import across_opening, across_ridge, edge_weights, line_opening
+from rainyscape.imaging.streaks import EDGE_SIDES, across_opening, across_ridge, edge_weights, line_opening
 from rainyscape.rain.langevin import langevin_update
 from rainyscape.scene import SceneData
 
@@ -137,6 +137,9 @@ class RainPredictor(RainHead):
         # when the edge runs along the fall, but the fit is too bright on its dark side; rain
         # over a background the field has right has no such partner. 0: off.
         field_edge: float = bounded(0.0, 0.0, 10.0)
+        # ... the partner on either side, or (one) only as far as it is darker than the one on
+        # the other side: a streak the field holds in part leaves a partner on both sides
+        field_edge_sides: str = choice("either", EDGE_SIDES)
         # ... in a direction whose streaks lean at most this (degrees) from the world's down in
         # the view (as the AGR loss's max_tilt; 90: any direction)
         max_tilt: float = bounded(90.0, above=0.0, hi=90.0)
@@ -258,7 +261,7 @@ class RainPredictor(RainHead):
             ridge = across_ridge(residual, angle, RIDGE_HALF_WIDTH)
             shaped = torch.maximum(shaped, torch.minimum(c.field_gain * shaped, ridge))
         if c.field_edge > 0:
-            shaped = shaped * edge_weights(residual, angle, EDGE_HALF_WIDTH, c.field_edge)
+            shaped = shaped * edge_weights(residual, angle, EDGE_HALF_WIDTH, c.field_edge, c.field_edge_sides)
         # a window whose residual shows no direction keeps its whole R
         return torch.where(valid[:, None, None, None], shaped, layer)
 
