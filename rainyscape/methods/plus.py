@@ -16,9 +16,7 @@ and budget, read from it, never copied) with the parts both fields share
 ``rainyscape-plus-nerf`` adds, on the grid field:
 
 - rain only adds light: in the warm-up the pixels the input shows brighter than the render
-  weigh ``WARMUP_BRIGHTER``, so the head starts against a field that holds less of the rain,
-  but only where the residual runs towards white (``WARMUP_COLOUR``);
-- the field keeps the bright side of an edge it blurs along the rain (``FIELD_EDGE``);
+  weigh ``WARMUP_BRIGHTER``, so the head starts against a field that holds less of the rain;
 - a joint step of fewer patches and more single rays (``JOINT_PATCHES``, ``JOINT_RAYS``);
 - the AGR term's direction per view from the whole-view step, where the head sees rain, read
   with the structure tensor (``AGR_PLUS_NERF``).
@@ -95,20 +93,6 @@ FIELD_COLOUR = 0.1
 # Gaussians' L1 it lost 0.09 dB on the cpu set (a screen), so rainyscape-plus has no such weight.
 WARMUP_BRIGHTER = 0.5
 
-# ... and only where the residual I - B runs from B towards white (rain has the light's colour;
-# the full weight where it departs by under WARMUP_COLOUR, none at twice): the detail the young
-# field blurs keeps its own colour, and light rain's dry pixels were darkened there. Alone:
-# every static-rain folder of the real set +0.12 to +0.29 dB, the cpu set -0.14 (docs/rain.md,
-# "Rain has the light's colour"; with FIELD_EDGE: docs/benchmarks.md, "The two gates together").
-WARMUP_COLOUR = 0.1
-
-# The field keeps the bright side of an edge it blurs: where the residual has a partner darker
-# than FIELD_EDGE times its own level up to 3 px across the streaks, on one side only (a streak
-# the field holds in part is too bright on both), R is handed back to the field. A blurred edge
-# along the fall looks like a streak to the head, and that false rain held a third of the light
-# folders' error (docs/rain.md, "The field keeps the bright side of an edge it blurs").
-FIELD_EDGE = {"field_edge": 0.5, "field_edge_sides": "one"}
-
 # The grid field's joint step: 4 patches of 4 x 4 and 960 single rays, where rainyscape-nerf
 # has 16 and 768 (the same 1024 rays). The patches' terms (reconstruction, likelihood) fit the
 # field to the input less all of R, and where R is false rain on light rain they fit it darker
@@ -169,9 +153,7 @@ rainyscape_plus = MethodSpec(
 
 def _rainyscape_plus_nerf() -> PipelineConfig:
     cfg = with_plus_parts(rainyscape_nerf.config, "rainyscape-plus-nerf")
-    cfg.losses["photometric"].options = {**cfg.losses["photometric"].options, "brighter": WARMUP_BRIGHTER,
-                                         "colour": WARMUP_COLOUR}
-    cfg.rain_head.options.update(FIELD_EDGE)
+    cfg.losses["photometric"].options = {**cfg.losses["photometric"].options, "brighter": WARMUP_BRIGHTER}
     cfg.losses["agr"].options = {**cfg.losses["agr"].options, **AGR_PLUS_NERF}
     cfg.phases["joint"] = dataclasses.replace(cfg.phases["joint"],
                                               **joint_batch(cfg.phases["warmup"], JOINT_PATCHES, JOINT_RAYS))
@@ -180,7 +162,7 @@ def _rainyscape_plus_nerf() -> PipelineConfig:
 
 rainyscape_plus_nerf = MethodSpec(
     name="rainyscape-plus-nerf",
-    description="rainyscape-nerf plus a warm-up in which pixels brighter than the render towards white weigh half (rain only adds light, in its colour), the bright side of edges the field blurs along the rain left to the field, joint steps of 4 patches and 960 single rays, capped TV, the rain direction looked for near each view's down and kept per view from whole views where the head sees rain (read with the structure tensor), and on a CPU a full-resolution rain head whose R the field is fitted without, less the edges that run across the rain, raised where the residual stands out across it and kept only where the residual has the rain's colour",
+    description="rainyscape-nerf plus a warm-up in which pixels brighter than the render weigh half (rain only adds light), joint steps of 4 patches and 960 single rays, capped TV, the rain direction looked for near each view's down and kept per view from whole views where the head sees rain (read with the structure tensor), and on a CPU a full-resolution rain head whose R the field is fitted without, less the edges that run across the rain, raised where the residual stands out across it and kept only where the residual has the rain's colour",
     config=_rainyscape_plus_nerf(),
     gpu=list(rainyscape_nerf.gpu) + PAPER_LATENT_GPU,
 )
