@@ -152,11 +152,20 @@ def line_directions(cameras: Cameras, direction: Tensor) -> Tensor:
     d = cameras.c2w[:, :3, :3].transpose(1, 2) @ direction.to(cameras.c2w)  # (N, 3), camera frame
     xs = torch.arange(cameras.width, dtype=d.dtype, device=d.device) + 0.5
     ys = torch.arange(cameras.height, dtype=d.dtype, device=d.device) + 0.5
+    intrinsics = [v[:, None, None] for v in (cameras.fx, cameras.fy, cameras.cx, cameras.cy)]
+    return projected_line_angles(d[:, None, None, :], *intrinsics, xs[None, None, :], ys[None, :, None])
+
+
+def projected_line_angles(d: Tensor, fx: Tensor, fy: Tensor, cx: Tensor, cy: Tensor,
+                          u: Tensor, v: Tensor) -> Tensor:
+    """The image direction (radians in [0, pi), from +x towards +y) of a 3D line whose
+    camera-frame direction is ``d`` (..., 3) through the pixel centre (``u``, ``v``); ``d``'s
+    leading dimensions and the other arguments broadcast."""
     # d/dt of the projection of X + t d is, up to a positive factor 1 / z, (fx dx - (u - cx) dz,
     # fy dy - (v - cy) dz)
-    fx, fy, cx, cy = (v[:, None, None] for v in (cameras.fx, cameras.fy, cameras.cx, cameras.cy))
-    dx, dy, dz = (d[:, i, None, None] for i in range(3))
-    du, dv = torch.broadcast_tensors(fx * dx - (xs[None, None, :] - cx) * dz, fy * dy - (ys[None, :, None] - cy) * dz)
+    dx, dy, dz = d.unbind(-1)
+    du = fx * dx - (u - cx) * dz
+    dv = fy * dy - (v - cy) * dz
     return torch.remainder(torch.atan2(dv, du), torch.pi)
 
 
