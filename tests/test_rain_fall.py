@@ -15,7 +15,7 @@ from rainyscape.eval.rain_stats import fall_angles_deg, true_rain_falls
 from rainyscape.imaging.angles import angle_difference_deg
 from rainyscape.losses.agr import AdaptiveGradientRotation
 from rainyscape.cameras import projected_line_angles
-from rainyscape.imaging.fall import GradientSamples, fit_fall_direction, tilted_directions
+from rainyscape.losses.fall import GradientSamples, fit_fall_direction, tilted_directions
 
 
 def _ring_cameras(n: int = 8, pitch_deg: float = 30.0, size: int = 64) -> Cameras:

@@ -27,7 +27,7 @@ from rainyscape.config.schema import bounded, choice
 from rainyscape.errors import ConfigError
 from rainyscape.imaging.gradients import GRADIENT_KERNELS, image_gradients, steer
 from rainyscape.imaging.angles import ORIENTATION_ESTIMATORS, estimate_rain_angles, streak_angle, weighted_mean_angle_deg
-from rainyscape.imaging.fall import GradientSamples, fit_fall_direction, gradient_samples, tilt_deg
+from rainyscape.losses.fall import GradientSamples, fit_fall_direction, gradient_samples, tilt_deg
 from rainyscape.scene import SceneData
 
 AGR_DIRECTIONS = ("batch", "view", "world")
@@ -85,7 +85,7 @@ class AdaptiveGradientRotation(Loss):
         # where the direction comes from: batch (each batch's own residual, as the paper) | view
         # (a batch of whole views keeps each view's; a batch of patches or crops takes its views'
         # kept directions, estimating only for a view that has none yet: a 4 x 4 patch's few
-        # gradients are mostly the scene's edges) | world (one 3D fall direction, imaging/fall.py,
+        # gradients are mostly the scene's edges) | world (one 3D fall direction, losses/fall.py,
         # steering every pixel by its own streak direction: the world's down until two fits in
         # a row to the whole views' residual gradients agree)
         directions: str = choice("batch", AGR_DIRECTIONS)
