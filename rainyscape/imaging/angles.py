@@ -36,18 +36,24 @@ def orientation_histogram(residual: Tensor, bins: int = 60, threshold: float = 0
     pixel's structure-tensor direction (pooled over ``sigma`` px) with its coherent strength,
     which a thin streak's pixels share and isolated pixels and tips do not.
     """
-    if estimator == "gradient":
-        orientation, magnitude = gradient_orientation(residual, kernel)
-        weight = torch.ones_like(magnitude)
-    elif estimator == "structure":
-        orientation, weight, magnitude = structure_orientation(residual, kernel, sigma)
-    else:
-        raise ValueError(f"unknown orientation estimator '{estimator}'; choose one of {ORIENTATION_ESTIMATORS}")
+    orientation, weight, magnitude = pixel_orientations(residual, kernel, estimator, sigma)
     b = orientation.shape[0]
     index = (orientation / math.pi * bins).long().clamp_(0, bins - 1)
     keep = weight * (magnitude > threshold).to(orientation.dtype)
     hist = torch.zeros(b, bins, dtype=orientation.dtype, device=orientation.device)
     return hist.scatter_add_(1, index.reshape(b, -1), keep.reshape(b, -1))
+
+
+def pixel_orientations(images: Tensor, kernel: str = "scharr", estimator: str = "gradient",
+                       sigma: float = 2.0) -> tuple[Tensor, Tensor, Tensor]:
+    """Each pixel's orientation in [0, pi), the weight its vote carries and its gradient
+    magnitude, each (B, h-2, w-2), as ``estimator`` reads them (see :func:`orientation_histogram`)."""
+    if estimator == "gradient":
+        orientation, magnitude = gradient_orientation(images, kernel)
+        return orientation, torch.ones_like(magnitude), magnitude
+    if estimator == "structure":
+        return structure_orientation(images, kernel, sigma)
+    raise ValueError(f"unknown orientation estimator '{estimator}'; choose one of {ORIENTATION_ESTIMATORS}")
 
 
 def smooth_histogram(hist: Tensor, passes: int) -> Tensor:

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from rainyscape.cameras import Cameras, projected_line_angles
-from rainyscape.imaging.gradients import gradient_orientation, structure_orientation
+from rainyscape.imaging.angles import pixel_orientations
 
 
 @dataclass
@@ -46,15 +46,9 @@ def gradient_samples(residual: Tensor, view: int, threshold: float, limit: int,
                      generator: torch.Generator | None = None, estimator: str = "gradient",
                      kernel: str = "scharr") -> GradientSamples:
     """Up to ``limit`` of the residual's (C, H, W) pixels whose gradient exceeds ``threshold``
-    (Sobel gain, grey levels, as the AGR term's), drawn at random, each with its orientation as
-    ``estimator`` reads it (imaging/angles.py: a pixel's own 3x3 gradient, weight 1, or the
-    structure tensor's, weighted by its coherent strength)."""
-    image = residual.float()[None]
-    if estimator == "structure":
-        orientation, weight, magnitude = structure_orientation(image, kernel)
-    else:
-        orientation, magnitude = gradient_orientation(image, kernel)
-        weight = torch.ones_like(magnitude)
+    (Sobel gain, grey levels, as the AGR term's), drawn at random, each with its orientation and
+    weight as ``estimator`` reads them (imaging/angles.py: ``pixel_orientations``)."""
+    orientation, weight, magnitude = pixel_orientations(residual.float()[None], kernel, estimator)
     ys, xs = torch.nonzero(magnitude[0] > threshold, as_tuple=True)
     if len(xs) > limit:
         keep = torch.randperm(len(xs), generator=generator)[:limit].to(xs.device)
