@@ -127,6 +127,8 @@ class AdaptiveGradientRotation(Loss):
         # fall (3,) steered by and its streak direction at every pixel of every view (N, H, W),
         # the last fit (not yet agreed with) and whole views since it
         self.cameras = None
+        self.fit_cameras = None
+        self.world_down: Tensor | None = None
         self.samples: dict[int, GradientSamples] = {}
         self.masks: dict[int, Tensor] = {}
         self.fall: Tensor | None = None
@@ -142,8 +144,10 @@ class AdaptiveGradientRotation(Loss):
             if self.config.top_k != 1:
                 raise ConfigError(f"agr.directions=world fits one fall direction; agr.top_k must be 1, got {self.config.top_k}")
             self.cameras = scene.cameras.to(device)
+            self.fit_cameras = scene.cameras.to("cpu")  # the fit runs on the CPU
+            self.world_down = -level_up(self.fit_cameras.c2w)
             self.image_size = (scene.cameras.width, scene.cameras.height)
-            self.set_fall(self.world_down())
+            self.set_fall(self.world_down)
         if self.config.directions == "view":
             n, k = len(scene.cameras), int(self.config.top_k)
             self.kept = (torch.zeros(n, k, device=device), torch.zeros(n, k, dtype=torch.bool, device=device))
@@ -184,8 +188,8 @@ class AdaptiveGradientRotation(Loss):
             self.unfitted_views += 1
         if self.unfitted_views >= c.fall_refit:
             samples = GradientSamples.cat(list(self.samples.values()))
-            down = self.world_down()
-            fit = fit_fall_direction(self.cameras.to("cpu"), samples, down, c.fall_max_tilt) if len(samples.u) else None
+            down = self.world_down
+            fit = fit_fall_direction(self.fit_cameras, samples, down, c.fall_max_tilt) if len(samples.u) else None
             if fit is not None and tilt_deg(fit, down) >= c.fall_max_tilt - 1.0:
                 fit = None  # a best at the bound: the residual is ruled by the scene, no fall in it
             # a young head calls the field's unfitted edges rain, and a fit to them moves from one
@@ -194,9 +198,6 @@ class AdaptiveGradientRotation(Loss):
                 self.set_fall(fit)
             self.last_fit = fit
             self.unfitted_views = 0
-
-    def world_down(self) -> Tensor:
-        return -level_up(self.cameras.c2w).cpu()
 
     def set_fall(self, fall: Tensor) -> None:
         """Steer by ``fall`` (3,), world frame: its streak direction at every pixel of every view."""
@@ -283,7 +284,7 @@ class AdaptiveGradientRotation(Loss):
             if angle is not None:
                 self.view_angles[int(vid)] = [round(angle, 2)]
                 self.metrics[f"streak_deg/view{int(vid)}"] = round(angle, 2)
-        self.metrics["fall_tilt_deg"] = round(tilt_deg(self.fall, self.world_down()), 2)
+        self.metrics["fall_tilt_deg"] = round(tilt_deg(self.fall, self.world_down), 2)
 
     def state_dict(self) -> dict:
         state = {"view_angles": {str(k): v for k, v in self.view_angles.items()}}
