@@ -48,6 +48,18 @@ def test_brighter_pixels_weigh_less_only_where_rain_is_a_constant():
     assert float(plain(_ctx(rendered, target, None))) == pytest.approx(0.25 * (4 + 0 + 9 + 1) / 4)
 
 
+def test_exclude_leaves_pixels_under_cached_rain_to_the_other_views():
+    """``exclude``: where R is the cache's constant, a pixel weighs exp(-(R / s)^2): R = 0.1 at
+    s = 0.05 weighs e^-4, a dry pixel 1; where the head learns from the term, every pixel counts."""
+    target = torch.tensor([[[[1.0, 1.0]]]])
+    rendered = torch.tensor([[[[0.5, 0.5]]]])
+    rain = torch.tensor([[[[0.1, 0.0]]]])  # residual I - B - R = [0.4, 0.5]
+    term = Reconstruction(Reconstruction.Config(exclude=0.05))
+    assert float(term(_ctx(rendered, target, rain))) == pytest.approx((math.exp(-4) * 0.16 + 0.25) / 2)
+    learning = rain.clone().requires_grad_(True)
+    assert float(term(_ctx(rendered, target, learning)).detach()) == pytest.approx((0.16 + 0.25) / 2)
+
+
 def test_streak_scale_keeps_the_brighter_weight_for_streaks_and_not_for_detail():
     """``streak_scale``: of two pixels equally brighter than the render, the one on a streak
     falling along the view's down weighs ``brighter``, the one on a blob (detail) weighs 1."""

@@ -29,14 +29,15 @@ def likelihood_loss(residual: Tensor, eps: float = 1e-6) -> Tensor:
     return residual.pow(2).mean() / (var + eps)
 
 
-def reconstruction_loss(residual: Tensor, brighter: float | Tensor = 1.0) -> Tensor:
+def reconstruction_loss(residual: Tensor, brighter: float | Tensor = 1.0, keep: Tensor | None = None) -> Tensor:
     """mean(w r^2), w = ``brighter`` (a number, or per pixel (B, 1, h, w)) where the target is
-    brighter than the fit (the pixel's channel mean of r above 0), else 1."""
+    brighter than the fit (the pixel's channel mean of r above 0), else 1; times ``keep``
+    (B, 1, h, w) per pixel when given."""
     squares = residual.pow(2)
-    if isinstance(brighter, float) and brighter == 1.0:
+    if isinstance(brighter, float) and brighter == 1.0 and keep is None:
         return squares.mean()
     w = torch.where(residual.detach().mean(1, keepdim=True) > 0, brighter, 1.0)
-    return (w * squares).mean()
+    return (w * squares if keep is None else w * keep * squares).mean()
 
 
 def dry_weight(layer: Tensor, scale: float) -> Tensor:
@@ -89,13 +90,19 @@ class Reconstruction(Loss):
         # where R is a constant (the field's single rays against the head's cached R), the
         # weight of pixels the input shows brighter than B + R: rain only adds light
         brighter: float = bounded(1.0, 0.0, 1.0)
+        # where R is a constant: s > 0 weighs each pixel exp(-(R / s)^2) (dry_weight), so the
+        # field fits a point the rain covers in one view from the views that see it dry rather
+        # than from I - R, whose error there is the head's (0: every pixel counts, the paper's)
+        exclude: float = bounded(0.0, 0.0)
 
     def __init__(self, config: "Reconstruction.Config | None" = None):
         super().__init__(config or self.Config())
 
     def __call__(self, ctx: LossContext) -> Tensor:
+        c = self.config
         fixed = ctx.rain is not None and not ctx.rain.requires_grad
-        return reconstruction_loss(decomposition_residual(ctx), self.config.brighter if fixed else 1.0)
+        keep = dry_weight(ctx.rain, c.exclude) if fixed and c.exclude > 0 else None
+        return reconstruction_loss(decomposition_residual(ctx), c.brighter if fixed else 1.0, keep)
 
 
 class TotalVariation(Loss):
