@@ -24,7 +24,8 @@ layers, over its training views:
   correlation with the true rain, and with ``--reach-gain`` the term's cap of the evidence at
   the pixel by that many times it (docs/rain.md, "The neighbours' brightest within a pixel");
 - with ``--field``: how much of R the field is fitted without (the rain head's ``for_field``
-  at the run's end), on the false rain and on the true rain's pixels;
+  at the run's end), on the false rain and on the true rain's pixels, and on the rain's pixels
+  how near the render and the field's target (the input less that part) are to the clean view;
 - with ``--edge``: how much of R the rain head's ``field_edge`` gate would keep at each share
   given, on the false rain and on the true rain's pixels (the darker partner up to
   EDGE_HALF_WIDTH px across the streaks, found as the head finds them; ``--edge-sides one``:
@@ -136,17 +137,28 @@ def edge_gate(views: dict, head, shares: list[float], sides: str) -> None:
 @torch.no_grad()
 def field_share(pipeline, views: dict) -> None:
     """Print the share of R the head's ``for_field`` hands the field, on the false rain and on
-    the true rain's pixels."""
+    the true rain's pixels; and on the rain's pixels the PSNR of the render and of the field's
+    target (the input less that part) against the clean view, and the share of the render's
+    squared error there that is its mean bias."""
     head = pipeline.rain_head
     head.eval()
     sums = {"false": [0.0, 0.0], "true": [0.0, 0.0]}
+    render_se, target_se, bias, count = 0.0, 0.0, torch.zeros(3), 0
     for i, v in views.items():
         part = head.for_field(v.rain[None], (v.rainy - v.rendered)[None], torch.tensor([i]), v.rendered[None])[0]
         for key, m in (("false", false_rain(v)), ("true", wet(v))):
             sums[key][0] += float(v.rain.mean(0)[m].sum()); sums[key][1] += float(part.mean(0)[m].sum())
+        m = wet(v)
+        miss = (v.rendered - v.clean)[:, m]
+        render_se += float((miss ** 2).sum()); bias += miss.sum(1); count += int(m.sum())
+        target_se += float(((v.rainy - part - v.clean)[:, m] ** 2).sum())
     share = {k: b / a if a else float("nan") for k, (a, b) in sums.items()}
     print(f"the field is fitted without this share of R (for_field): false rain {share['false']:.2f} / "
           f"the true rain's pixels {share['true']:.2f}")
+    bias_share = float((bias / max(count, 1)).pow(2).mean()) / max(render_se / max(3 * count, 1), 1e-12)
+    print(f"on the rain's pixels: the render {db(render_se, 3 * count):.2f} dB (its mean bias "
+          f"{(bias / max(count, 1)).mean():+.3f}, {100 * bias_share:.0f} % of its squared error), the field's "
+          f"target I - for_field {db(target_se, 3 * count):.2f} dB")
 
 
 def evidence_at_reach(views: dict, scene, reaches: list[int], gain: float, k: int) -> None:
