@@ -146,18 +146,21 @@ def field_share(pipeline, views: dict) -> None:
     render_se, target_se, bias, count = 0.0, 0.0, torch.zeros(3), 0
     for i, v in views.items():
         part = head.for_field(v.rain[None], (v.rainy - v.rendered)[None], torch.tensor([i]), v.rendered[None])[0]
-        for key, m in (("false", false_rain(v)), ("true", wet(v))):
+        rainy = wet(v)
+        for key, m in (("false", false_rain(v)), ("true", rainy)):
             sums[key][0] += float(v.rain.mean(0)[m].sum()); sums[key][1] += float(part.mean(0)[m].sum())
-        m = wet(v)
-        miss = (v.rendered - v.clean)[:, m]
-        render_se += float((miss ** 2).sum()); bias += miss.sum(1); count += int(m.sum())
-        target_se += float(((v.rainy - part - v.clean)[:, m] ** 2).sum())
+        miss = (v.rendered - v.clean)[:, rainy]
+        render_se += float((miss ** 2).sum()); bias += miss.sum(1); count += int(rainy.sum())
+        target_se += float(((v.rainy - part - v.clean)[:, rainy] ** 2).sum())
     share = {k: b / a if a else float("nan") for k, (a, b) in sums.items()}
     print(f"the field is fitted without this share of R (for_field): false rain {share['false']:.2f} / "
           f"the true rain's pixels {share['true']:.2f}")
-    bias_share = float((bias / max(count, 1)).pow(2).mean()) / max(render_se / max(3 * count, 1), 1e-12)
+    if count == 0:
+        return
+    mean_bias = bias / count
+    bias_share = float(mean_bias.pow(2).mean()) / max(render_se / (3 * count), 1e-12)
     print(f"on the rain's pixels: the render {db(render_se, 3 * count):.2f} dB (its mean bias "
-          f"{(bias / max(count, 1)).mean():+.3f}, {100 * bias_share:.0f} % of its squared error), the field's "
+          f"{mean_bias.mean():+.3f}, {100 * bias_share:.0f} % of its squared error), the field's "
           f"target I - for_field {db(target_se, 3 * count):.2f} dB")
 
 
